@@ -1,0 +1,20 @@
+"""microctl: accurate and repeatable position control of piezo micromanipulators.
+
+The package implements the Enhanced Analytic Forward Model (EAFM) of Su et al.:
+a contact-model analytic forward model (AFM) of a flexure platform corrected by a
+variational heteroscedastic Gaussian process (VHGPR), and an optimal controller that
+reaches a target tool pose with the smallest predicted noise variance.
+"""
+
+from microctl.errors import BackendError, ConfigError, DataError, MicroctlError, SolveError
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BackendError",
+    "ConfigError",
+    "DataError",
+    "MicroctlError",
+    "SolveError",
+    "__version__",
+]

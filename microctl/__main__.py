@@ -1,0 +1,5 @@
+"""Allow ``python -m microctl``."""
+
+from microctl.cli import main
+
+raise SystemExit(main())

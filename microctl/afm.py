@@ -1,0 +1,326 @@
+"""The analytic forward model (AFM) of a contact-driven flexure platform (paper III-A/B).
+
+Built generally from a :class:`~microctl.config.Stage`: any number of actuators (one
+ball each), tilted contact normals and actuator directions, any hinge DoF. Following
+eq. 5-14 literally:
+
+- J_h (6 × n_p) selects the twist components the flexure allows (eq. 5);
+- P_i maps the platform twist to the twist of contact point i (eq. 6), R̄_i rotates it
+  into the contact frame {C}_i = [n_i o_i a_i], and H_i keeps its normal component (eq. 8);
+- J (6 n_c × n_q) maps actuator velocities to the ball twists (eq. 7);
+- q = (H R̄^T J)^-1 H R̄^T P^T J_h p = K p (eq. 10-12), the inverse kinematics;
+- t = T_s (P_t^T J_h p + t0) (eq. 13), relative to the zero state: t = w · p;
+- f_a(s, u) = [t; q] with u = p (eq. 14).
+
+Static model corrections of the stage (``stage.corrections``: actuator gain, contact
+offset, tool offset, sensor scale and nonlinearity) are applied to the *prediction*:
+the command is still q = K u from the CAD geometry, the balls move G q, the platform
+settles at the least-squares pose of the (shared elastic) contact heights, and the gauge
+reads scale·d + quad·d². Causes that need the state or time (backlash, contact loss,
+drift) belong to the physics model (:mod:`microctl.physics`), not here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+from scipy.optimize import linprog
+
+from microctl.config import TWIST_COMPONENTS, Effects, Stage
+from microctl.errors import ConfigError, SolveError
+
+
+def skew(r: Sequence[float]) -> np.ndarray:
+    """Cross-product matrix S(r) of the paper (S(r) x = r × x), shape (3, 3)."""
+    r1, r2, r3 = r
+    return np.array([[0.0, -r3, r2], [r3, 0.0, -r1], [-r2, r1, 0.0]])
+
+
+def hinge_jacobian(dof: Sequence[str]) -> np.ndarray:
+    """J_h of eq. 5: the twist v = J_h ṗ allowed by the hinge, shape (6, n_p).
+
+    For the default DoF (z, rx, ry) this is [0_{3×2} I_3 0_{3×1}]^T.
+    """
+    Jh = np.zeros((6, len(dof)))
+    for j, name in enumerate(dof):
+        Jh[TWIST_COMPONENTS.index(name), j] = 1.0
+    return Jh
+
+
+def twist_transfer(point_mm: Sequence[float]) -> np.ndarray:
+    """P_i of eq. 6 for a point, shape (6, 6): [[I, 0], [S(c), I]].
+
+    P_i^T [v; ω] = [v + ω × c; ω] is the twist of the point c on the platform.
+    """
+    P = np.eye(6)
+    P[3:, :3] = skew(point_mm)
+    return P
+
+
+def contact_frame(normal: Sequence[float]) -> np.ndarray:
+    """R_i = [n_i o_i a_i] of eq. 6, a right-handed orthonormal frame with n_i first.
+
+    The choice of o_i and a_i is arbitrary (the paper's words); H_i keeps only n_i.
+    """
+    n = np.asarray(normal, dtype=float)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    o = np.cross(n, helper)
+    o /= np.linalg.norm(o)
+    a = np.cross(n, o)
+    return np.column_stack([n, o, a])
+
+
+def _contacts(stage: Stage, corrections: Effects | None = None) -> list[np.ndarray]:
+    offsets = {c.actuator - 1: (c.dx_mm, c.dy_mm) for c in (corrections.contact_offset if corrections else ())}
+    out = []
+    for i, a in enumerate(stage.actuators):
+        c = np.array(a.contact_mm, dtype=float)
+        if i in offsets:
+            c[:2] += offsets[i]
+        out.append(c)
+    return out
+
+
+def contact_map(stage: Stage, corrections: Effects | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked contact matrices of eq. 9.
+
+    Parameters
+    ----------
+    stage : Stage
+    corrections : Effects, optional
+        Contact offsets to apply to the CAD contact points.
+
+    Returns
+    -------
+    hrj : ndarray, shape (n_c, n_q)
+        H R̄^T J: normal ball velocity per actuator velocity.
+    hrp : ndarray, shape (n_c, 6)
+        H R̄^T P^T: normal velocity of each contact point per platform twist.
+    """
+    n_q = stage.n_act
+    H_rows_J = []
+    H_rows_P = []
+    H_i = np.zeros((1, 6))
+    H_i[0, 0] = 1.0  # eq. 8: only the normal translational component is transmitted
+    for i, (a, c) in enumerate(zip(stage.actuators, _contacts(stage, corrections))):
+        R = contact_frame(a.normal)
+        Rbar = np.zeros((6, 6))
+        Rbar[:3, :3] = R
+        Rbar[3:, 3:] = R
+        J_i = np.zeros((6, n_q))  # eq. 7: actuator i translates its ball along d_i
+        J_i[:3, i] = a.direction
+        H_rows_J.append(H_i @ Rbar.T @ J_i)
+        H_rows_P.append(H_i @ Rbar.T @ twist_transfer(c).T)
+    return np.vstack(H_rows_J), np.vstack(H_rows_P)
+
+
+def inverse_kinematics_matrix(stage: Stage, corrections: Effects | None = None) -> np.ndarray:
+    """K of eq. 12, q = K p, shape (n_q, n_p)."""
+    hrj, hrp = contact_map(stage, corrections)
+    return np.linalg.solve(hrj, hrp @ hinge_jacobian(stage.dof))
+
+
+def tool_vector(stage: Stage, corrections: Effects | None = None) -> np.ndarray:
+    """w of eq. 13, t = w · p relative to the zero state, shape (n_p,).
+
+    T_s (P_t^T J_h p + t0) with T_s = [s^T 0]: the gauge reads the translation of the tool
+    point along the sensor direction s; the constant T_s t0 cancels against the zero state.
+    """
+    t0 = np.array(stage.tool.point_mm, dtype=float)
+    if corrections is not None and corrections.tool_offset is not None:
+        t0[:2] += (corrections.tool_offset.dx_mm, corrections.tool_offset.dy_mm)
+    Ts = np.concatenate([np.asarray(stage.tool.direction, dtype=float), np.zeros(3)])
+    return Ts @ twist_transfer(t0).T @ hinge_jacobian(stage.dof)
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The polytope of control signals whose actuator commands are all in range.
+
+    {u : lo ≤ K u ≤ hi}, shape conventions: u has n_p entries.
+
+    Attributes
+    ----------
+    K : ndarray, shape (n_q, n_p)
+    lo, hi : ndarray, shape (n_q,)
+    u_lo, u_hi : ndarray, shape (n_p,)
+        The bounding box of the polytope (by linear programming).
+    """
+
+    K: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    u_lo: np.ndarray
+    u_hi: np.ndarray
+
+    def contains(self, u: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """Whether each row of ``u`` (shape (m, n_p) or (n_p,)) is in the polytope."""
+        q = np.atleast_2d(u) @ self.K.T
+        inside = np.all((q >= self.lo - tol) & (q <= self.hi + tol), axis=1)
+        return inside if np.ndim(u) == 2 else bool(inside[0])
+
+    def sample(self, n: int, rng: np.random.Generator, max_batches: int = 1000) -> np.ndarray:
+        """Uniform samples from the polytope by rejection from its bounding box.
+
+        Returns
+        -------
+        ndarray, shape (n, n_p)
+        """
+        out: list[np.ndarray] = []
+        have = 0
+        for _ in range(max_batches):
+            cand = rng.uniform(self.u_lo, self.u_hi, size=(max(4 * n, 64), self.u_lo.size))
+            ok = cand[self.contains(cand)]
+            out.append(ok)
+            have += len(ok)
+            if have >= n:
+                return np.vstack(out)[:n]
+        raise SolveError("the workspace polytope is too thin to sample by rejection")
+
+    def map_unit(self, z: np.ndarray) -> np.ndarray:
+        """Map points of the unit cube (shape (m, n_p)) to the bounding box."""
+        return self.u_lo + np.asarray(z) * (self.u_hi - self.u_lo)
+
+
+def _lp_extreme(c: np.ndarray, K: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """min c·u s.t. lo ≤ K u ≤ hi."""
+    res = linprog(
+        c,
+        A_ub=np.vstack([K, -K]),
+        b_ub=np.concatenate([hi, -lo]),
+        bounds=[(None, None)] * K.shape[1],
+        method="highs",
+    )
+    if res.status != 0:
+        raise ConfigError(f"the actuator ranges admit no platform pose (linear program: {res.message})")
+    return float(res.fun)
+
+
+class AnalyticForwardModel:
+    """The AFM f_a(s, u) = [t; q] of eq. 14, as CasADi Functions and NumPy.
+
+    Parameters
+    ----------
+    stage : Stage
+        Geometry (and optional static corrections).
+
+    Attributes
+    ----------
+    K : ndarray, shape (n_q, n_p)
+        Inverse kinematics q = K u (eq. 12), from the CAD geometry: what the drivers get.
+    w : ndarray, shape (n_p,)
+        Tool map t = w · u (eq. 13) of the CAD geometry.
+    F : ndarray, shape (n_p, n_q)
+        Forward map from commands to platform pose under the corrections (identity-like
+        ``F K = I`` when there are none).
+    w_pred : ndarray, shape (n_p,)
+        Tool map of the corrected geometry.
+    scale, quad : float
+        Gauge scale and quadratic coefficient (1 and 0 without corrections).
+    f_a, ik, tool : casadi.Function
+        Named Functions: ``f_a(s, u) -> (t, q)``, ``ik(u) -> q``, ``tool(u) -> t``.
+    """
+
+    def __init__(self, stage: Stage):
+        self.stage = stage
+        self.n_p = stage.n_dof
+        self.n_q = stage.n_act
+        self.n_s = 1 + self.n_q
+        self.K = inverse_kinematics_matrix(stage)
+        self.w = tool_vector(stage)
+        corr = stage.corrections
+        unsupported = [n for n in ("backlash", "contact_loss", "drift") if getattr(corr, n)]
+        self.dynamic_corrections = tuple(unsupported)
+        # Static corrections: balls move G q (gains), the platform settles at the pose whose
+        # contact heights best match them (elastic sharing among equal contacts: least squares),
+        # the gauge reads the corrected tool point with scale and quadratic term.
+        gains = np.ones(self.n_q)
+        for g in corr.actuator_gain:
+            gains[g.actuator - 1] = g.gain
+        K_true = inverse_kinematics_matrix(stage, corr)
+        self.F = np.linalg.pinv(K_true) @ np.diag(gains)
+        self.w_pred = tool_vector(stage, corr) @ self.F @ self.K
+        self.scale = corr.sensor_scale.scale if corr.sensor_scale else 1.0
+        self.quad = corr.sensor_nonlinearity.quad_per_um if corr.sensor_nonlinearity else 0.0
+        self.lo = stage.range_lo
+        self.hi = stage.range_hi
+        self.workspace = Workspace(
+            K=self.K,
+            lo=self.lo,
+            hi=self.hi,
+            u_lo=np.array([_lp_extreme(e, self.K, self.lo, self.hi) for e in np.eye(self.n_p)]),
+            u_hi=np.array([-_lp_extreme(-e, self.K, self.lo, self.hi) for e in np.eye(self.n_p)]),
+        )
+        self._build_casadi()
+
+    # ---- names -------------------------------------------------------------------
+    @property
+    def dof(self) -> tuple[str, ...]:
+        """DoF names (entries of u)."""
+        return self.stage.dof
+
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        """Actuator names (entries of q)."""
+        return self.stage.actuator_names
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Entries of the state s = [t; q]."""
+        return (self.stage.tool.name, *self.stage.actuator_names)
+
+    # ---- CasADi ------------------------------------------------------------------
+    def _sensor(self, d):
+        return self.scale * d + self.quad * d * d
+
+    def _build_casadi(self) -> None:
+        u = ca.MX.sym("u", self.n_p)
+        s = ca.MX.sym("s", self.n_s)
+        q = ca.mtimes(ca.DM(self.K), u)  # eq. 12
+        t = self._sensor(ca.dot(ca.DM(self.w_pred), u))  # eq. 13 (+ static corrections)
+        self.ik = ca.Function("ik", [u], [q], ["u"], ["q"])
+        self.tool = ca.Function("tool", [u], [t], ["u"], ["t"])
+        # s is an input for the interface of eq. 14; this AFM is absolute (relative to the
+        # zero state), so the prediction does not depend on it.
+        self.f_a = ca.Function("f_a", [s, u], [t, q], ["s", "u"], ["t", "q"])
+
+    # ---- NumPy -------------------------------------------------------------------
+    def q_of(self, u: np.ndarray) -> np.ndarray:
+        """Actuator commands q = K u (eq. 12); u shape (n_p,) or (m, n_p)."""
+        return np.asarray(u, dtype=float) @ self.K.T
+
+    def t_of(self, u: np.ndarray, s: np.ndarray | None = None) -> np.ndarray:
+        """Predicted tool pose t (eq. 13); u shape (n_p,) or (m, n_p); s ignored (absolute AFM)."""
+        return self._sensor(np.asarray(u, dtype=float) @ self.w_pred)
+
+    def predict(self, s: np.ndarray | None, u: np.ndarray) -> np.ndarray:
+        """f_a(s, u) = [t; q] (eq. 14); returns shape (n_s,) or (m, n_s)."""
+        u = np.asarray(u, dtype=float)
+        t = np.asarray(self.t_of(u))
+        return np.concatenate([t[..., None], self.q_of(u)], axis=-1)
+
+    # ---- ranges ------------------------------------------------------------------
+    def t_range(self, s: np.ndarray | None = None) -> tuple[float, float]:
+        """Reachable interval [lo, hi] of t from state ``s`` over the workspace (µm).
+
+        The AFM is absolute, so every pose of the workspace is reachable from every state.
+        """
+        d_lo = _lp_extreme(self.w_pred, self.K, self.lo, self.hi)
+        d_hi = -_lp_extreme(-self.w_pred, self.K, self.lo, self.hi)
+        cands = [self._sensor(d_lo), self._sensor(d_hi)]
+        if self.quad != 0.0:
+            d_star = -self.scale / (2 * self.quad)
+            if d_lo < d_star < d_hi:
+                cands.append(self._sensor(d_star))
+        return float(min(cands)), float(max(cands))
+
+    def zero_state(self) -> np.ndarray:
+        """The zero state s = [t; q] = 0, shape (n_s,)."""
+        return np.zeros(self.n_s)
+
+    def without_corrections(self) -> "AnalyticForwardModel":
+        """The CAD AFM of the same stage (corrections dropped)."""
+        return AnalyticForwardModel(replace(self.stage, corrections=Effects()))

@@ -1,0 +1,72 @@
+"""The ``microctl`` command line (contract: ``shared/spec/cli.md``, copied in docs/cli.md).
+
+Each sub-command lives in its own module under :mod:`microctl.commands` and exposes
+``register(subparsers)``; this module discovers them, so adding a command never edits
+this file. Exit status: 0 success, 2 usage or input error (one line on stderr, no
+traceback), 1 any other failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from typing import Sequence
+
+from microctl import __version__
+from microctl.errors import INPUT_ERRORS, MicroctlError
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line and exit status 2."""
+
+    def error(self, message: str) -> None:  # noqa: D401 - argparse API
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every discovered sub-command."""
+    parser = _Parser(
+        prog="microctl",
+        description="Accurate, repeatable position control of piezo micromanipulators (EAFM).",
+    )
+    parser.add_argument("--version", action="version", version=f"microctl {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    import microctl.commands as commands_pkg
+
+    for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"microctl.commands.{info.name}")
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the process exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except INPUT_ERRORS as exc:
+        print(f"microctl: error: {exc}", file=sys.stderr)
+        return 2
+    except MicroctlError as exc:
+        print(f"microctl: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("microctl: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into e.g. `head`
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Sub-commands of ``microctl``: one module per command group, each with ``register()``."""

@@ -1,0 +1,894 @@
+"""Stage configuration: YAML → frozen dataclasses, validated at load.
+
+A stage file has two top-level sections::
+
+    stage:     # the geometry the analytic forward model (AFM) is built from (paper Table I)
+    backend:   # which stage the commands drive: the simulated one or serial hardware
+
+Every problem is a :class:`~microctl.errors.ConfigError` whose message names the file
+and the field path (``stage.actuators[2].normal``) and says what would be valid; unknown
+keys are rejected at every level. See ``docs/config.md`` for the full reference.
+
+Units: lengths of the platform motion and actuators in µm, rotations in mrad, geometry
+(contact points, tool point) in mm, so that mrad × mm = µm.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import yaml
+
+from microctl.errors import ConfigError
+
+#: Twist components of a rigid body, in the paper's order v = [v; ω] (eq. 5): translations
+#: in µm, rotations in mrad.
+TWIST_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
+
+#: Largest condition number accepted for the contact map H R^T J (eq. 10) and the
+#: inverse-kinematics matrix K; beyond it the pose is not determined by the actuators.
+MAX_CONDITION = 1e6
+
+#: Smallest |n_i · d_i| accepted: a ball pushed more than ~84° away from its contact
+#: normal needs ten times its stroke to move the platform (ill-conditioned eq. 10).
+MIN_TRANSMISSION = 0.1
+
+_UNIT_TOL = 1e-6
+
+
+# --------------------------------------------------------------------------------------
+# dataclasses
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """One PZT pushing one ball against the platform.
+
+    Attributes
+    ----------
+    name : str
+        Column name of its displacement in measurement logs (``q1``).
+    contact_mm : tuple of 3 float
+        Contact point c_i of the ball on the platform (eq. 6), mm.
+    normal : tuple of 3 float
+        Unit normal n_i of the contact tangent plane, pointing into the platform.
+    direction : tuple of 3 float
+        Unit direction in which the actuator moves its ball (J_i, eq. 7).
+    range_um : tuple of 2 float
+        Commanded displacement range used, (lo, hi), µm. Moves outside are refused.
+    limit_um : tuple of 2 float
+        Hardware limit, (lo, hi), µm; contains ``range_um``.
+    """
+
+    name: str
+    contact_mm: tuple[float, float, float]
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    range_um: tuple[float, float] = (0.0, 32.0)
+    limit_um: tuple[float, float] = (0.0, 38.0)
+
+
+@dataclass(frozen=True)
+class Tool:
+    """The measured tool point and the gauge direction (eq. 13).
+
+    Attributes
+    ----------
+    name : str
+        Column name of the measured tool pose (``t``).
+    point_mm : tuple of 3 float
+        Tool point t0 in the world frame, mm.
+    direction : tuple of 3 float
+        Unit direction the gauge measures along (T_s).
+    """
+
+    name: str = "t"
+    point_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Physics:
+    """Elastic contact physics of the stage (used by the simulator and the diagnosis).
+
+    The flexure presses the platform onto the balls with ``preload_n`` and resists motion
+    with ``flexure_stiffness``; each ball is a one-sided spring of ``contact_stiffness``.
+
+    Attributes
+    ----------
+    contact_stiffness_n_per_um : float
+        Stiffness of one ball contact (ball + PZT in series), N/µm.
+    preload_n : float
+        Force with which the flexure presses the platform down at the zero pose, N.
+    flexure_stiffness : tuple of float
+        Flexure stiffness per hinge DoF, in N/µm for translations and N·µm/mrad² for
+        rotations (so energy is in N·µm), one per ``Stage.dof``.
+    """
+
+    contact_stiffness_n_per_um: float = 20.0
+    preload_n: float = 100.0
+    flexure_stiffness: tuple[float, ...] = (0.01, 5.0, 5.0)
+
+
+# ---- causes / effects (shared/spec/diagnosis.md vocabulary) --------------------------
+
+
+@dataclass(frozen=True)
+class ActuatorGain:
+    """Actuator ``actuator`` (1-based) moves ``gain`` × its command."""
+
+    actuator: int
+    gain: float
+
+
+@dataclass(frozen=True)
+class ContactOffset:
+    """Ball ``actuator`` touches the platform (dx_mm, dy_mm) away from its CAD point."""
+
+    actuator: int
+    dx_mm: float
+    dy_mm: float
+
+
+@dataclass(frozen=True)
+class ToolOffset:
+    """The measured point is (dx_mm, dy_mm) away from its CAD position t0."""
+
+    dx_mm: float
+    dy_mm: float
+
+
+@dataclass(frozen=True)
+class SensorScale:
+    """The gauge reads ``scale`` × the true displacement."""
+
+    scale: float
+
+
+@dataclass(frozen=True)
+class SensorNonlinearity:
+    """The gauge adds ``quad_per_um`` × d² to a displacement d."""
+
+    quad_per_um: float
+
+
+@dataclass(frozen=True)
+class ContactLoss:
+    """Ball ``actuator`` sits ``gap_um`` low (lost preload)."""
+
+    actuator: int
+    gap_um: float
+
+
+@dataclass(frozen=True)
+class Backlash:
+    """Actuator ``actuator`` ends ``lag_um`` short of its command in its last direction."""
+
+    actuator: int
+    lag_um: float
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The reading creeps by ``rate_um_per_s`` per second."""
+
+    rate_um_per_s: float
+
+
+@dataclass(frozen=True)
+class ActuatorFriction:
+    """Stick-slip at ball ``actuator``: scatter std = ``std_per_um`` × |Δq_i|."""
+
+    actuator: int
+    std_per_um: float
+
+
+@dataclass(frozen=True)
+class Effects:
+    """A set of physical causes; used as simulator truth and as model corrections.
+
+    Per-actuator causes are tuples (at most one entry per actuator); global causes are
+    ``None`` when absent.
+    """
+
+    actuator_gain: tuple[ActuatorGain, ...] = ()
+    contact_offset: tuple[ContactOffset, ...] = ()
+    tool_offset: ToolOffset | None = None
+    sensor_scale: SensorScale | None = None
+    sensor_nonlinearity: SensorNonlinearity | None = None
+    contact_loss: tuple[ContactLoss, ...] = ()
+    backlash: tuple[Backlash, ...] = ()
+    drift: Drift | None = None
+    actuator_friction: tuple[ActuatorFriction, ...] = ()
+
+    def is_empty(self) -> bool:
+        """Whether no cause is set."""
+        return all(not getattr(self, f.name) for f in fields(self))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The YAML form (only the causes that are set)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not value:
+                continue
+            out[f.name] = [asdict(v) for v in value] if isinstance(value, tuple) else asdict(value)
+        return out
+
+
+_PER_ACTUATOR_CAUSES: dict[str, type] = {
+    "actuator_gain": ActuatorGain,
+    "contact_offset": ContactOffset,
+    "contact_loss": ContactLoss,
+    "backlash": Backlash,
+    "actuator_friction": ActuatorFriction,
+}
+_GLOBAL_CAUSES: dict[str, type] = {
+    "tool_offset": ToolOffset,
+    "sensor_scale": SensorScale,
+    "sensor_nonlinearity": SensorNonlinearity,
+    "drift": Drift,
+}
+
+
+@dataclass(frozen=True)
+class Stage:
+    """The stage geometry and model (paper Table I and eq. 5-14).
+
+    Attributes
+    ----------
+    name : str
+        Free-text name.
+    dof : tuple of str
+        Hinge DoF allowed by the flexure, a subset of ``TWIST_COMPONENTS`` (J_h, eq. 5).
+    actuators : tuple of Actuator
+        One per PZT/ball, at least ``len(dof)``.
+    tool : Tool
+        Tool point and gauge direction.
+    physics : Physics
+        Elastic contact physics.
+    corrections : Effects
+        Model corrections accepted from a diagnosis (empty for a CAD model).
+    """
+
+    name: str
+    dof: tuple[str, ...]
+    actuators: tuple[Actuator, ...]
+    tool: Tool
+    physics: Physics = field(default_factory=Physics)
+    corrections: Effects = field(default_factory=Effects)
+
+    @property
+    def n_dof(self) -> int:
+        """Number of hinge DoF (the size of u = p)."""
+        return len(self.dof)
+
+    @property
+    def n_act(self) -> int:
+        """Number of actuators (the size of q)."""
+        return len(self.actuators)
+
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        """Actuator names in config order."""
+        return tuple(a.name for a in self.actuators)
+
+    @property
+    def range_lo(self) -> np.ndarray:
+        """Lower actuator range, µm, shape (n_act,)."""
+        return np.array([a.range_um[0] for a in self.actuators], dtype=float)
+
+    @property
+    def range_hi(self) -> np.ndarray:
+        """Upper actuator range, µm, shape (n_act,)."""
+        return np.array([a.range_um[1] for a in self.actuators], dtype=float)
+
+    def geometry_hash(self) -> str:
+        """SHA-256 of everything the forward model depends on (not the name, not physics)."""
+        payload = {
+            "dof": list(self.dof),
+            "actuators": [asdict(a) for a in self.actuators],
+            "tool": asdict(self.tool),
+            "corrections": self.corrections.to_dict(),
+        }
+        text = json.dumps(payload, sort_keys=True, default=float)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The YAML form of the ``stage`` section."""
+        out: dict[str, Any] = {
+            "name": self.name,
+            "dof": list(self.dof),
+            "tool": {
+                "name": self.tool.name,
+                "point_mm": list(self.tool.point_mm),
+                "direction": list(self.tool.direction),
+            },
+            "actuators": [
+                {
+                    "name": a.name,
+                    "contact_mm": list(a.contact_mm),
+                    "normal": list(a.normal),
+                    "direction": list(a.direction),
+                    "range_um": list(a.range_um),
+                    "limit_um": list(a.limit_um),
+                }
+                for a in self.actuators
+            ],
+            "physics": {
+                "contact_stiffness_n_per_um": self.physics.contact_stiffness_n_per_um,
+                "preload_n": self.physics.preload_n,
+                "flexure_stiffness": list(self.physics.flexure_stiffness),
+            },
+        }
+        if not self.corrections.is_empty():
+            out["corrections"] = self.corrections.to_dict()
+        return out
+
+
+@dataclass(frozen=True)
+class SimulatedBackend:
+    """The simulated stage (``backend.simulated``).
+
+    Attributes
+    ----------
+    seed : int
+        Seed of every random draw; the same config and seed give the same data.
+    gauge_noise_std_um : float
+        Standard deviation of the gauge reading noise, µm.
+    driver_accuracy_um : float
+        Standard deviation of each driver's positioning error, µm (paper: 0.01 µm).
+    move_time_s : float
+        Simulated time a move takes to settle (drift accumulates with it), s.
+    effects : Effects
+        The physical defects the simulated stage has (the truth a diagnosis must find).
+    """
+
+    seed: int = 0
+    gauge_noise_std_um: float = 0.05
+    driver_accuracy_um: float = 0.01
+    move_time_s: float = 1.0
+    effects: Effects = field(default_factory=Effects)
+
+
+@dataclass(frozen=True)
+class SerialController:
+    """One PZT servo driver (PI GCS 2 subset)."""
+
+    name: str
+    url: str
+    baudrate: int = 115200
+    timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class AxisMap:
+    """Where an actuator is driven: (controller name, axis id)."""
+
+    controller: str
+    axis: str
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """The displacement gauge's line protocol."""
+
+    url: str
+    baudrate: int = 115200
+    timeout_s: float = 1.0
+    query: str = "MEAS?"
+    eol: str = "\r\n"
+    reply_pattern: str = r"^\s*\+?(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
+    samples: int = 1
+
+
+@dataclass(frozen=True)
+class SerialBackend:
+    """Serial hardware (``backend.serial``; shared/spec/serial-protocol.md)."""
+
+    controllers: tuple[SerialController, ...]
+    axes: tuple[tuple[str, AxisMap], ...]
+    gauge: Gauge
+    on_target_timeout_s: float = 5.0
+    poll_interval_s: float = 0.005
+    retries: int = 2
+
+    def axis_of(self, actuator: str) -> AxisMap:
+        """The (controller, axis) an actuator is driven by."""
+        return dict(self.axes)[actuator]
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Which stage the commands drive.
+
+    Attributes
+    ----------
+    kind : str
+        ``"simulated"`` or ``"serial"``.
+    simulated : SimulatedBackend
+        Simulator settings (also what ``microctl emulate`` serves).
+    serial : SerialBackend or None
+        Hardware settings; required when ``kind == "serial"``.
+    """
+
+    kind: str = "simulated"
+    simulated: SimulatedBackend = field(default_factory=SimulatedBackend)
+    serial: SerialBackend | None = None
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """A whole stage file: the model and the backend.
+
+    Attributes
+    ----------
+    stage : Stage
+    backend : Backend
+    source : str
+        The file it was read from (for messages).
+    """
+
+    stage: Stage
+    backend: Backend = field(default_factory=Backend)
+    source: str = "<memory>"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The YAML form of the whole file."""
+        b = self.backend
+        backend: dict[str, Any] = {"kind": b.kind}
+        sim = b.simulated
+        backend["simulated"] = {
+            "seed": sim.seed,
+            "gauge_noise_std_um": sim.gauge_noise_std_um,
+            "driver_accuracy_um": sim.driver_accuracy_um,
+            "move_time_s": sim.move_time_s,
+        }
+        if not sim.effects.is_empty():
+            backend["simulated"]["effects"] = sim.effects.to_dict()
+        if b.serial is not None:
+            s = b.serial
+            backend["serial"] = {
+                "controllers": [asdict(c) for c in s.controllers],
+                "axes": {name: asdict(m) for name, m in s.axes},
+                "gauge": asdict(s.gauge),
+                "on_target_timeout_s": s.on_target_timeout_s,
+                "poll_interval_s": s.poll_interval_s,
+                "retries": s.retries,
+            }
+        return {"stage": self.stage.to_dict(), "backend": backend}
+
+    def dump_yaml(self) -> str:
+        """YAML text that :func:`load_stage_config` reads back to an equal config."""
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+# --------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------
+
+
+class _Ctx:
+    """Where we are in the file, for messages."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, path: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {path}: {message}")
+
+    def mapping(self, value: Any, path: str, allowed: Iterable[str], required: Iterable[str] = ()) -> dict:
+        if not isinstance(value, Mapping):
+            raise self.fail(path, f"expected a mapping with keys {sorted(allowed)}, got {type(value).__name__}")
+        allowed = list(allowed)
+        for key in value:
+            if key not in allowed:
+                raise self.fail(f"{path}.{key}", f"unknown key '{key}'; valid keys here: {', '.join(allowed)}")
+        for key in required:
+            if key not in value:
+                raise self.fail(f"{path}.{key}", "is required")
+        return dict(value)
+
+    def number(self, value: Any, path: str, *, positive: bool = False, nonneg: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {value!r}")
+        x = float(value)
+        if not math.isfinite(x):
+            raise self.fail(path, f"expected a finite number, got {value!r}")
+        if positive and x <= 0:
+            raise self.fail(path, f"must be > 0, got {value!r}")
+        if nonneg and x < 0:
+            raise self.fail(path, f"must be >= 0, got {value!r}")
+        return x
+
+    def integer(self, value: Any, path: str, *, lo: int | None = None, hi: int | None = None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {value!r}")
+        if lo is not None and value < lo or hi is not None and value > hi:
+            raise self.fail(path, f"must be an integer in [{lo}, {hi}], got {value!r}")
+        return int(value)
+
+    def string(self, value: Any, path: str) -> str:
+        if not isinstance(value, str) or not value.strip():
+            raise self.fail(path, f"expected a non-empty string, got {value!r}")
+        return value
+
+    def vector(self, value: Any, path: str, n: int) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)) or len(value) != n:
+            got = f"{len(value)} values" if isinstance(value, (list, tuple)) else repr(value)
+            raise self.fail(path, f"expected a list of {n} numbers, got {got}")
+        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+    def unit_vector(self, value: Any, path: str) -> tuple[float, float, float]:
+        v = self.vector(value, path, 3)
+        norm = math.sqrt(sum(x * x for x in v))
+        if norm == 0.0:
+            raise self.fail(path, "is the zero vector; give a unit vector, e.g. [0, 0, 1]")
+        if abs(norm - 1.0) > _UNIT_TOL:
+            raise self.fail(path, f"has length {norm:.6g}, must be a unit vector (length 1 ± {_UNIT_TOL})")
+        return v  # type: ignore[return-value]
+
+    def interval(self, value: Any, path: str) -> tuple[float, float]:
+        lo, hi = self.vector(value, path, 2)
+        if lo >= hi:
+            raise self.fail(path, f"lower bound {lo:g} must be below upper bound {hi:g}")
+        return (lo, hi)
+
+
+def _parse_effects(ctx: _Ctx, raw: Any, path: str, n_act: int) -> Effects:
+    if raw is None:
+        return Effects()
+    allowed = list(_PER_ACTUATOR_CAUSES) + list(_GLOBAL_CAUSES)
+    raw = ctx.mapping(raw, path, allowed)
+    kwargs: dict[str, Any] = {}
+    for name, cls in _PER_ACTUATOR_CAUSES.items():
+        if name not in raw:
+            continue
+        entries = raw[name]
+        if not isinstance(entries, list):
+            raise ctx.fail(f"{path}.{name}", "expected a list of entries, one per actuator")
+        seen: set[int] = set()
+        items = []
+        for k, entry in enumerate(entries):
+            items.append(_parse_cause(ctx, cls, entry, f"{path}.{name}[{k}]", n_act))
+            if items[-1].actuator in seen:
+                raise ctx.fail(f"{path}.{name}[{k}].actuator", f"actuator {items[-1].actuator} appears twice")
+            seen.add(items[-1].actuator)
+        kwargs[name] = tuple(items)
+    for name, cls in _GLOBAL_CAUSES.items():
+        if name in raw and raw[name] is not None:
+            kwargs[name] = _parse_cause(ctx, cls, raw[name], f"{path}.{name}", n_act)
+    return Effects(**kwargs)
+
+
+_CAUSE_RULES = {
+    "gain": {"positive": True},
+    "scale": {"positive": True},
+    "gap_um": {"nonneg": True},
+    "lag_um": {"nonneg": True},
+    "std_per_um": {"nonneg": True},
+}
+
+
+def _parse_cause(ctx: _Ctx, cls: type, raw: Any, path: str, n_act: int) -> Any:
+    names = [f.name for f in fields(cls)]
+    raw = ctx.mapping(raw, path, names, required=names)
+    kwargs = {}
+    for name in names:
+        if name == "actuator":
+            kwargs[name] = ctx.integer(raw[name], f"{path}.actuator", lo=1, hi=n_act)
+        else:
+            kwargs[name] = ctx.number(raw[name], f"{path}.{name}", **_CAUSE_RULES.get(name, {}))
+    return cls(**kwargs)
+
+
+def _parse_stage(ctx: _Ctx, raw: Any) -> Stage:
+    raw = ctx.mapping(
+        raw, "stage", ["name", "dof", "actuators", "tool", "physics", "corrections"], required=["actuators", "tool"]
+    )
+    name = ctx.string(raw.get("name", "stage"), "stage.name")
+    dof_raw = raw.get("dof", ["z", "rx", "ry"])
+    if not isinstance(dof_raw, list) or not dof_raw:
+        raise ctx.fail("stage.dof", f"expected a non-empty list of twist components from {list(TWIST_COMPONENTS)}")
+    dof = []
+    for i, d in enumerate(dof_raw):
+        if d not in TWIST_COMPONENTS:
+            raise ctx.fail(f"stage.dof[{i}]", f"'{d}' is not a twist component; valid: {', '.join(TWIST_COMPONENTS)}")
+        if d in dof:
+            raise ctx.fail(f"stage.dof[{i}]", f"'{d}' appears twice")
+        dof.append(d)
+    dof.sort(key=TWIST_COMPONENTS.index)
+    if tuple(dof) != tuple(dof_raw):
+        raise ctx.fail("stage.dof", f"list the DoF in twist order, i.e. {dof}")
+
+    acts_raw = raw["actuators"]
+    if not isinstance(acts_raw, list):
+        raise ctx.fail("stage.actuators", "expected a list of actuators")
+    if len(acts_raw) < len(dof):
+        raise ctx.fail(
+            "stage.actuators",
+            f"{len(acts_raw)} actuators cannot determine {len(dof)} DoF; give at least {len(dof)}",
+        )
+    actuators = []
+    for i, a in enumerate(acts_raw):
+        p = f"stage.actuators[{i}]"
+        a = ctx.mapping(a, p, ["name", "contact_mm", "normal", "direction", "range_um", "limit_um"], ["contact_mm"])
+        act = Actuator(
+            name=ctx.string(a.get("name", f"q{i + 1}"), f"{p}.name"),
+            contact_mm=ctx.vector(a["contact_mm"], f"{p}.contact_mm", 3),  # type: ignore[arg-type]
+            normal=ctx.unit_vector(a.get("normal", [0, 0, 1]), f"{p}.normal"),
+            direction=ctx.unit_vector(a.get("direction", [0, 0, 1]), f"{p}.direction"),
+            range_um=ctx.interval(a.get("range_um", [0, 32]), f"{p}.range_um"),
+            limit_um=ctx.interval(a.get("limit_um", [0, 38]), f"{p}.limit_um"),
+        )
+        if act.range_um[0] < act.limit_um[0] or act.range_um[1] > act.limit_um[1]:
+            raise ctx.fail(
+                f"{p}.range_um",
+                f"{list(act.range_um)} must lie inside the hardware limit {list(act.limit_um)}",
+            )
+        if any(act.name == b.name for b in actuators):
+            raise ctx.fail(f"{p}.name", f"actuator name '{act.name}' is used twice")
+        actuators.append(act)
+
+    t = ctx.mapping(raw["tool"], "stage.tool", ["name", "point_mm", "direction"], ["point_mm"])
+    tool = Tool(
+        name=ctx.string(t.get("name", "t"), "stage.tool.name"),
+        point_mm=ctx.vector(t["point_mm"], "stage.tool.point_mm", 3),  # type: ignore[arg-type]
+        direction=ctx.unit_vector(t.get("direction", [0, 0, 1]), "stage.tool.direction"),
+    )
+    if tool.name in {a.name for a in actuators} or tool.name in dof:
+        raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
+
+    ph = ctx.mapping(
+        raw.get("physics", {}) or {},
+        "stage.physics",
+        ["contact_stiffness_n_per_um", "preload_n", "flexure_stiffness"],
+    )
+    default = Physics()
+    flex_default = dict(zip(("z", "rx", "ry"), default.flexure_stiffness))
+    flex_raw = ph.get("flexure_stiffness", [flex_default.get(d, 1.0) for d in dof])
+    physics = Physics(
+        contact_stiffness_n_per_um=ctx.number(
+            ph.get("contact_stiffness_n_per_um", default.contact_stiffness_n_per_um),
+            "stage.physics.contact_stiffness_n_per_um",
+            positive=True,
+        ),
+        preload_n=ctx.number(ph.get("preload_n", default.preload_n), "stage.physics.preload_n", positive=True),
+        flexure_stiffness=ctx.vector(flex_raw, "stage.physics.flexure_stiffness", len(dof)),
+    )
+    for i, k in enumerate(physics.flexure_stiffness):
+        if k <= 0:
+            raise ctx.fail(f"stage.physics.flexure_stiffness[{i}]", f"must be > 0, got {k!r}")
+
+    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
+    if corrections.actuator_friction:
+        raise ctx.fail("stage.corrections.actuator_friction", "is a noise cause; the GP models scatter")
+    stage = Stage(
+        name=name,
+        dof=tuple(dof),
+        actuators=tuple(actuators),
+        tool=tool,
+        physics=physics,
+        corrections=corrections,
+    )
+    _check_conditioning(ctx, stage)
+    return stage
+
+
+def _check_conditioning(ctx: _Ctx, stage: Stage) -> None:
+    """Refuse geometries where H R^T J (eq. 10) or K (eq. 12) is singular or ill-conditioned."""
+    from microctl.afm import contact_map, inverse_kinematics_matrix  # local: afm imports config
+
+    hrj, _ = contact_map(stage)
+    for i, a in enumerate(stage.actuators):
+        nd = hrj[i, i]
+        if abs(nd) < 1e-12:
+            raise ctx.fail(
+                f"stage.actuators[{i}].direction",
+                "is perpendicular to the contact normal (n·d = 0): the ball cannot push the platform, so "
+                "H R^T J (eq. 10) is singular; give a direction with a component along the normal",
+            )
+        if abs(nd) < MIN_TRANSMISSION:
+            raise ctx.fail(
+                f"stage.actuators[{i}].direction",
+                f"makes H R^T J (eq. 10) ill-conditioned: n·d = {nd:.3g}, need |n·d| >= {MIN_TRANSMISSION} "
+                "(direction within ~84° of the contact normal)",
+            )
+    cond = np.linalg.cond(hrj)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ctx.fail(
+            "stage.actuators",
+            f"H R^T J (eq. 10) is ill-conditioned (condition number {cond:.3g} > {MAX_CONDITION:g}); "
+            "tilt the directions closer to the contact normals",
+        )
+    K = inverse_kinematics_matrix(stage)
+    sv = np.linalg.svd(K, compute_uv=False)
+    if sv[-1] <= sv[0] / MAX_CONDITION:
+        raise ctx.fail(
+            "stage.actuators",
+            f"the contact points do not determine the DoF {list(stage.dof)} (inverse kinematics K has "
+            f"condition number {sv[0] / max(sv[-1], 1e-300):.3g}); place the contacts so that no platform "
+            "motion leaves every contact height unchanged (e.g. not all on one line)",
+        )
+
+
+def _parse_backend(ctx: _Ctx, raw: Any, stage: Stage) -> Backend:
+    if raw is None:
+        return Backend()
+    raw = ctx.mapping(raw, "backend", ["kind", "simulated", "serial"])
+    kind = raw.get("kind", "simulated")
+    if kind not in ("simulated", "serial"):
+        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: simulated, serial")
+    s = ctx.mapping(
+        raw.get("simulated", {}) or {},
+        "backend.simulated",
+        ["seed", "gauge_noise_std_um", "driver_accuracy_um", "move_time_s", "effects"],
+    )
+    d = SimulatedBackend()
+    sim = SimulatedBackend(
+        seed=ctx.integer(s.get("seed", d.seed), "backend.simulated.seed", lo=0),
+        gauge_noise_std_um=ctx.number(
+            s.get("gauge_noise_std_um", d.gauge_noise_std_um), "backend.simulated.gauge_noise_std_um", nonneg=True
+        ),
+        driver_accuracy_um=ctx.number(
+            s.get("driver_accuracy_um", d.driver_accuracy_um), "backend.simulated.driver_accuracy_um", nonneg=True
+        ),
+        move_time_s=ctx.number(s.get("move_time_s", d.move_time_s), "backend.simulated.move_time_s", positive=True),
+        effects=_parse_effects(ctx, s.get("effects"), "backend.simulated.effects", stage.n_act),
+    )
+    serial = None
+    if raw.get("serial") is not None:
+        serial = _parse_serial(ctx, raw["serial"], stage)
+    if kind == "serial" and serial is None:
+        raise ctx.fail("backend.serial", "is required when backend.kind is 'serial'")
+    return Backend(kind=kind, simulated=sim, serial=serial)
+
+
+def _parse_serial(ctx: _Ctx, raw: Any, stage: Stage) -> SerialBackend:
+    p = "backend.serial"
+    raw = ctx.mapping(
+        raw,
+        p,
+        ["controllers", "axes", "gauge", "on_target_timeout_s", "poll_interval_s", "retries"],
+        required=["controllers", "axes", "gauge"],
+    )
+    if not isinstance(raw["controllers"], list) or not raw["controllers"]:
+        raise ctx.fail(f"{p}.controllers", "expected a non-empty list of drivers")
+    controllers = []
+    for i, c in enumerate(raw["controllers"]):
+        cp = f"{p}.controllers[{i}]"
+        c = ctx.mapping(c, cp, ["name", "url", "baudrate", "timeout_s"], ["name", "url"])
+        ctrl = SerialController(
+            name=ctx.string(c["name"], f"{cp}.name"),
+            url=ctx.string(c["url"], f"{cp}.url"),
+            baudrate=ctx.integer(c.get("baudrate", 115200), f"{cp}.baudrate", lo=1),
+            timeout_s=ctx.number(c.get("timeout_s", 1.0), f"{cp}.timeout_s", positive=True),
+        )
+        if any(ctrl.name == o.name for o in controllers):
+            raise ctx.fail(f"{cp}.name", f"controller name '{ctrl.name}' is used twice")
+        controllers.append(ctrl)
+    names = [c.name for c in controllers]
+    axes_raw = ctx.mapping(raw["axes"], f"{p}.axes", stage.actuator_names, required=stage.actuator_names)
+    axes = []
+    used = set()
+    for act in stage.actuator_names:
+        ap = f"{p}.axes.{act}"
+        m = ctx.mapping(axes_raw[act], ap, ["controller", "axis"], ["controller", "axis"])
+        ctrl = ctx.string(m["controller"], f"{ap}.controller")
+        if ctrl not in names:
+            raise ctx.fail(f"{ap}.controller", f"'{ctrl}' is not a configured controller; valid: {', '.join(names)}")
+        axis = str(m["axis"]).strip()
+        if not axis or any(ch.isspace() for ch in axis):
+            raise ctx.fail(f"{ap}.axis", f"'{m['axis']}' is not a valid axis id (no spaces)")
+        if (ctrl, axis) in used:
+            raise ctx.fail(f"{ap}.axis", f"axis {axis} of {ctrl} is mapped to two actuators")
+        used.add((ctrl, axis))
+        axes.append((act, AxisMap(controller=ctrl, axis=axis)))
+    gp = f"{p}.gauge"
+    g = ctx.mapping(
+        raw["gauge"], gp, ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples"], ["url"]
+    )
+    gd = Gauge(url="")
+    pattern = g.get("reply_pattern", gd.reply_pattern)
+    try:
+        import re
+
+        compiled = re.compile(pattern)
+    except (re.error, TypeError) as exc:
+        raise ctx.fail(f"{gp}.reply_pattern", f"is not a valid regular expression: {exc}") from None
+    if compiled.groups > 1:
+        raise ctx.fail(f"{gp}.reply_pattern", "must have at most one capture group (the number)")
+    gauge = Gauge(
+        url=ctx.string(g["url"], f"{gp}.url"),
+        baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1),
+        timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True),
+        query=ctx.string(g.get("query", gd.query), f"{gp}.query"),
+        eol=ctx.string(g.get("eol", gd.eol), f"{gp}.eol"),
+        reply_pattern=pattern,
+        samples=ctx.integer(g.get("samples", gd.samples), f"{gp}.samples", lo=1, hi=10000),
+    )
+    return SerialBackend(
+        controllers=tuple(controllers),
+        axes=tuple(axes),
+        gauge=gauge,
+        on_target_timeout_s=ctx.number(raw.get("on_target_timeout_s", 5.0), f"{p}.on_target_timeout_s", positive=True),
+        poll_interval_s=ctx.number(raw.get("poll_interval_s", 0.005), f"{p}.poll_interval_s", positive=True),
+        retries=ctx.integer(raw.get("retries", 2), f"{p}.retries", lo=0, hi=100),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# public loaders
+# --------------------------------------------------------------------------------------
+
+
+def parse_stage_config(data: Any, source: str = "<memory>") -> StageConfig:
+    """Validate an already-parsed YAML document.
+
+    Parameters
+    ----------
+    data : mapping
+        The document, with keys ``stage`` and optionally ``backend``.
+    source : str
+        Name used in error messages.
+
+    Raises
+    ------
+    ConfigError
+        On any invalid or unknown field.
+    """
+    ctx = _Ctx(source)
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: expected a YAML mapping with a 'stage' section, got {type(data).__name__}")
+    top = ctx.mapping(data, "<top>", ["stage", "backend"], required=["stage"])
+    stage = _parse_stage(ctx, top["stage"])
+    backend = _parse_backend(ctx, top.get("backend"), stage)
+    return StageConfig(stage=stage, backend=backend, source=source)
+
+
+def load_yaml(path: str | Path) -> Any:
+    """Read a YAML file, turning I/O and syntax errors into :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{path}: invalid YAML{where}: {problem}") from None
+
+
+def load_stage_config(path: str | Path) -> StageConfig:
+    """Load and validate a stage YAML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, e.g. ``configs/stage/table1.yaml``.
+
+    Returns
+    -------
+    StageConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the field path.
+    """
+    return parse_stage_config(load_yaml(path), source=str(path))
+
+
+def with_corrections(config: StageConfig, corrections: Effects) -> StageConfig:
+    """A copy of ``config`` whose stage model carries ``corrections``."""
+    return replace(config, stage=replace(config.stage, corrections=corrections))

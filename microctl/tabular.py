@@ -1,0 +1,119 @@
+"""Reading numeric CSV tables with errors that name the file, the row and the column.
+
+Rows are counted as the file's line numbers (the header is line 1), so an error points
+at the line a user would open in an editor.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from microctl.errors import DataError
+
+
+@dataclass(frozen=True)
+class Table:
+    """A CSV file read as text, with its header.
+
+    Attributes
+    ----------
+    path : Path
+        The file read.
+    header : tuple of str
+        Column names, in file order.
+    rows : tuple of tuple of str
+        The data rows as text; ``rows[k]`` is on line ``k + 2`` of the file.
+    """
+
+    path: Path
+    header: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+
+    def has(self, column: str) -> bool:
+        """Whether the table has ``column``."""
+        return column in self.header
+
+    def numeric(self, column: str) -> np.ndarray:
+        """Column ``column`` as a float array, shape (n_rows,).
+
+        Raises
+        ------
+        DataError
+            If the column is missing or a value is not a finite number.
+        """
+        if column not in self.header:
+            raise DataError(
+                f"{self.path}: missing required column '{column}' (columns present: {', '.join(self.header)})"
+            )
+        j = self.header.index(column)
+        out = np.empty(len(self.rows))
+        for k, row in enumerate(self.rows):
+            text = row[j].strip()
+            try:
+                value = float(text)
+            except ValueError:
+                raise DataError(
+                    f"{self.path}: row {k + 2}, column '{column}': '{text}' is not a number"
+                ) from None
+            if not math.isfinite(value):
+                raise DataError(f"{self.path}: row {k + 2}, column '{column}': value '{text}' is not finite")
+            out[k] = value
+        return out
+
+    def numeric_columns(self, columns: Sequence[str]) -> np.ndarray:
+        """Several columns as a float array, shape (n_rows, len(columns))."""
+        if not columns:
+            return np.empty((len(self.rows), 0))
+        return np.column_stack([self.numeric(c) for c in columns])
+
+
+def read_table(path: str | Path, *, min_rows: int = 1) -> Table:
+    """Read a comma-separated file with a header row.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    min_rows : int
+        Fewest data rows accepted.
+
+    Raises
+    ------
+    DataError
+        Unreadable file, empty file, duplicate column names, ragged rows, too few rows.
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            reader = csv.reader(fh)
+            try:
+                header = tuple(h.strip() for h in next(reader))
+            except StopIteration:
+                raise DataError(f"{path}: the file is empty (expected a header row)") from None
+            rows = []
+            for line_no, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    raise DataError(f"{path}: row {line_no} is empty (blank lines are not allowed)")
+                if len(row) != len(header):
+                    raise DataError(
+                        f"{path}: row {line_no} has {len(row)} fields, the header has {len(header)}"
+                    )
+                rows.append(tuple(row))
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text CSV file (undecodable bytes)") from None
+    seen = set()
+    for name in header:
+        if name in seen:
+            raise DataError(f"{path}: column '{name}' appears twice in the header")
+        seen.add(name)
+    if len(rows) < min_rows:
+        raise DataError(f"{path}: {len(rows)} data rows, at least {min_rows} needed")
+    return Table(path=path, header=header, rows=tuple(rows))
