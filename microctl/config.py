@@ -387,6 +387,7 @@ class Gauge:
     eol: str = "\r\n"
     reply_pattern: str = r"^\s*\+?(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
     samples: int = 1
+    zero_at_start: bool = False
 
 
 @dataclass(frozen=True)
@@ -515,9 +516,14 @@ class _Ctx:
             raise self.fail(path, f"must be an integer in [{lo}, {hi}], got {value!r}")
         return int(value)
 
-    def string(self, value: Any, path: str) -> str:
-        if not isinstance(value, str) or not value.strip():
+    def string(self, value: Any, path: str, *, blank_ok: bool = False) -> str:
+        if not isinstance(value, str) or value == "" or (not blank_ok and not value.strip()):
             raise self.fail(path, f"expected a non-empty string, got {value!r}")
+        return value
+
+    def boolean(self, value: Any, path: str) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(path, f"expected true or false, got {value!r}")
         return value
 
     def vector(self, value: Any, path: str, n: int) -> tuple[float, ...]:
@@ -793,7 +799,8 @@ def _parse_serial(ctx: _Ctx, raw: Any, stage: Stage) -> SerialBackend:
         axes.append((act, AxisMap(controller=ctrl, axis=axis)))
     gp = f"{p}.gauge"
     g = ctx.mapping(
-        raw["gauge"], gp, ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples"], ["url"]
+        raw["gauge"], gp, ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples", "zero_at_start"],
+        ["url"],
     )
     gd = Gauge(url="")
     pattern = g.get("reply_pattern", gd.reply_pattern)
@@ -810,9 +817,10 @@ def _parse_serial(ctx: _Ctx, raw: Any, stage: Stage) -> SerialBackend:
         baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1),
         timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True),
         query=ctx.string(g.get("query", gd.query), f"{gp}.query"),
-        eol=ctx.string(g.get("eol", gd.eol), f"{gp}.eol"),
+        eol=ctx.string(g.get("eol", gd.eol), f"{gp}.eol", blank_ok=True),
         reply_pattern=pattern,
         samples=ctx.integer(g.get("samples", gd.samples), f"{gp}.samples", lo=1, hi=10000),
+        zero_at_start=ctx.boolean(g.get("zero_at_start", gd.zero_at_start), f"{gp}.zero_at_start"),
     )
     return SerialBackend(
         controllers=tuple(controllers),
