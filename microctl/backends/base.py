@@ -1,0 +1,136 @@
+"""The stage backend interface: one move in, one measurement out.
+
+A backend drives a stage (simulated or hardware) with control signals u = p (the hinge
+pose of eq. 5) and returns the gauge reading t after the move has settled. Every move is
+converted to actuator commands q = K u with the CAD inverse kinematics (eq. 12) and checked
+against the configured actuator ranges *before* anything is sent or changed: a move out of
+range raises :class:`~microctl.errors.BackendError` naming the actuator, the value and the
+range; it is never clipped and never executed in part.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+
+from microctl.afm import inverse_kinematics_matrix, tool_vector
+from microctl.config import StageConfig
+from microctl.errors import BackendError
+
+#: Commands this close outside a range (round-off of K u at a bound) are accepted as they are.
+RANGE_TOLERANCE_UM = 1e-9
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The result of one executed move.
+
+    Attributes
+    ----------
+    t_um : float
+        Tool pose read by the gauge after settling, µm, relative to the zero state.
+    q_um : ndarray, shape (n_q,)
+        Actuator displacements sent to the drivers, µm.
+    u : ndarray, shape (n_p,)
+        The control signal (platform pose) commanded, µm / mrad.
+    time_s : float
+        Seconds since the start of the run when the move had settled.
+    """
+
+    t_um: float
+    q_um: np.ndarray
+    u: np.ndarray
+    time_s: float
+
+
+class StageBackend(abc.ABC):
+    """A stage that executes moves (abstract).
+
+    Parameters
+    ----------
+    config : StageConfig
+        The stage (geometry, ranges) and backend settings.
+
+    Attributes
+    ----------
+    K : ndarray, shape (n_q, n_p)
+        CAD inverse kinematics q = K u (eq. 12): what the drivers are sent.
+    w : ndarray, shape (n_p,)
+        CAD tool map (eq. 13).
+    """
+
+    def __init__(self, config: StageConfig):
+        self.config = config
+        self.stage = config.stage
+        self.K = inverse_kinematics_matrix(config.stage)
+        self.w = tool_vector(config.stage)
+        self.range_lo = config.stage.range_lo
+        self.range_hi = config.stage.range_hi
+        self._state = np.zeros(1 + config.stage.n_act)
+        self._closed = False
+
+    # ---- state ---------------------------------------------------------------------
+    @property
+    def state(self) -> np.ndarray:
+        """s = [t; q] after the last move (the zero state before the first), shape (1 + n_q,)."""
+        return self._state.copy()
+
+    def _set_state(self, t_um: float, q_um: np.ndarray) -> None:
+        self._state = np.concatenate([[float(t_um)], np.asarray(q_um, dtype=float)])
+
+    # ---- checks --------------------------------------------------------------------
+    def command_for(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Validate a control signal and return (u, q = K u), refusing any out-of-range move.
+
+        Parameters
+        ----------
+        u : array_like, shape (n_p,)
+
+        Returns
+        -------
+        u : ndarray, shape (n_p,)
+        q : ndarray, shape (n_q,)
+
+        Raises
+        ------
+        BackendError
+            Wrong shape, non-finite values, or an actuator command outside its range.
+        """
+        if self._closed:
+            raise BackendError("the backend is closed")
+        u = np.asarray(u, dtype=float).reshape(-1)
+        n_p = self.stage.n_dof
+        if u.size != n_p:
+            raise BackendError(f"control signal has {u.size} entries, the stage has {n_p} DoF {list(self.stage.dof)}")
+        if not np.all(np.isfinite(u)):
+            raise BackendError(f"control signal {u.tolist()} is not finite")
+        q = self.K @ u  # eq. 12
+        for i, name in enumerate(self.stage.actuator_names):
+            lo, hi = self.range_lo[i], self.range_hi[i]
+            if q[i] < lo - RANGE_TOLERANCE_UM or q[i] > hi + RANGE_TOLERANCE_UM:
+                raise BackendError(
+                    f"move refused: actuator {name} would be commanded to {q[i]:.4f} µm, outside its range "
+                    f"[{lo:g}, {hi:g}] µm (u = {np.array2string(u, precision=4)}); nothing was sent"
+                )
+        return u, q
+
+    # ---- interface -----------------------------------------------------------------
+    @abc.abstractmethod
+    def move(self, u: np.ndarray) -> Measurement:
+        """Execute one move to control signal u (shape (n_p,)) and read the gauge."""
+
+    @abc.abstractmethod
+    def read(self) -> float:
+        """A gauge reading now, µm, without moving."""
+
+    def close(self) -> None:
+        """Release the stage (idempotent)."""
+        self._closed = True
+
+    def __enter__(self) -> "StageBackend":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,145 @@
+"""The simulated stage: the contact physics of :mod:`microctl.physics` with noise.
+
+One move, in order:
+
+1. q = K u (eq. 12, CAD geometry), refused if out of range (nothing changes);
+2. backlash direction per actuator: sign(q − q_prev), kept when Δq_i = 0 (the zero state
+   counts as approached "up");
+3. actual positions q_act = q − lag·direction + e_driver + e_friction with
+   e_driver ~ N(0, driver_accuracy²) per actuator and e_friction,i ~ N(0, (std_i |Δq_i|)²);
+4. contact equilibrium p (``physics.solve_equilibrium``), the clock advances by move_time_s;
+5. reading = scale·d + quad·d² + drift·time + N(0, gauge_noise²), d = w_true·(p − p_zero).
+
+Actuator noise and gauge noise come from two independent streams spawned from the seed
+(``SeedSequence(seed).spawn(2)``): per move exactly 2·n_q actuator normals (driver first,
+then friction) and one gauge normal per reading are drawn, so the emulator, which reads the
+gauge through the serial dialect, reproduces the same data.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from microctl.backends.base import Measurement, StageBackend
+from microctl.config import StageConfig
+from microctl.errors import BackendError
+from microctl.physics import (
+    actual_positions,
+    ball_heights,
+    contact_model,
+    directions_from_steps,
+    sensor_reading,
+    solve_equilibrium,
+    tool_sensitivity,
+)
+
+
+class SimulatedStage(StageBackend):
+    """The simulated stage with the effects of ``config.backend.simulated``.
+
+    Parameters
+    ----------
+    config : StageConfig
+    seed : int, optional
+        Overrides ``config.backend.simulated.seed``.
+
+    Attributes
+    ----------
+    model : ContactModel
+        The physics with the true effects.
+    time_s : float
+        Simulated clock, s.
+    """
+
+    def __init__(self, config: StageConfig, seed: int | None = None):
+        super().__init__(config)
+        sim = config.backend.simulated
+        self.settings = sim
+        self.seed = int(sim.seed if seed is None else seed)
+        act_seq, gauge_seq = np.random.SeedSequence(self.seed).spawn(2)
+        self._rng_act = np.random.default_rng(act_seq)
+        self._rng_gauge = np.random.default_rng(gauge_seq)
+        self.model = contact_model(config.stage, sim.effects)
+        n = config.stage.n_act
+        self._q_cmd = np.zeros(n)
+        self._direction = np.ones(n)  # the zero state is approached "up"
+        self._p = self.model.p_zero.copy()
+        self.time_s = 0.0
+        self.moves = 0
+
+    # ---- physical move -------------------------------------------------------------
+    def settle(self, q_cmd: np.ndarray) -> None:
+        """Move the actuators to commands q (n_q,) (no range check) and settle the platform.
+
+        Used by :meth:`move` and by the emulator, which receives q over the serial dialect.
+        """
+        q = np.array(q_cmd, dtype=float).reshape(-1)  # a copy: the caller may reuse its array
+        dq = q - self._q_cmd
+        self._direction = directions_from_steps(dq[None, :], self._direction)[0]
+        z_driver = self._rng_act.standard_normal(q.size)
+        z_friction = self._rng_act.standard_normal(q.size)
+        q_act = actual_positions(self.model, q, self._direction)[0]
+        q_act = q_act + self.settings.driver_accuracy_um * z_driver
+        q_act = q_act + self.model.friction_std_per_um * np.abs(dq) * z_friction
+        p, _ = solve_equilibrium(self.model, ball_heights(self.model, q_act[None, :]))
+        self._p = p[0]
+        self._q_cmd = q
+        self.time_s += self.settings.move_time_s
+        self.moves += 1
+
+    def read(self) -> float:
+        """Gauge reading of the current pose now (one gauge-noise draw), µm."""
+        if self._closed:
+            raise BackendError("the backend is closed")
+        mean = sensor_reading(self.model, self._p[None, :], self.time_s)[0]
+        return float(mean + self.settings.gauge_noise_std_um * self._rng_gauge.standard_normal())
+
+    def move(self, u: np.ndarray) -> Measurement:
+        """Execute one move (see the module docstring) and read the gauge once."""
+        u, q = self.command_for(u)
+        self.settle(q)
+        t = self.read()
+        self._set_state(t, q)
+        return Measurement(t_um=t, q_um=q, u=u, time_s=self.time_s)
+
+    # ---- oracle --------------------------------------------------------------------
+    def _oracle(self, s: np.ndarray, u: np.ndarray):
+        s = np.asarray(s, dtype=float).reshape(-1)
+        u2 = np.atleast_2d(np.asarray(u, dtype=float))
+        q = u2 @ self.K.T
+        dq = q - s[1:]
+        direction = np.where(dq > 0, 1.0, np.where(dq < 0, -1.0, self._direction))
+        q_act = actual_positions(self.model, q, direction)
+        p, active = solve_equilibrium(self.model, ball_heights(self.model, q_act))
+        return u2, dq, p, active
+
+    def true_mean(self, s: np.ndarray, u: np.ndarray) -> np.ndarray | float:
+        """Noise-free expected reading of the next move from state s.
+
+        Parameters
+        ----------
+        s : ndarray, shape (1 + n_q,)
+            State [t_prev, q_prev] (only q_prev matters; a Δq_i = 0 keeps the stage's
+            current backlash direction).
+        u : ndarray, shape (n_p,) or (m, n_p)
+
+        Returns
+        -------
+        float or ndarray (m,)
+            At the time the next move would settle (clock + move_time_s).
+        """
+        u2, _, p, _ = self._oracle(s, u)
+        out = sensor_reading(self.model, p, self.time_s + self.settings.move_time_s)
+        return float(out[0]) if np.ndim(u) == 1 else out
+
+    def true_var(self, s: np.ndarray, u: np.ndarray) -> np.ndarray | float:
+        """Variance of the next reading from state s (µm²), shape () or (m,).
+
+        Driver accuracy and friction (std_i |Δq_i|) propagated linearly through the contact
+        equilibrium (:func:`microctl.physics.tool_sensitivity`), plus the gauge noise.
+        """
+        u2, dq, p, active = self._oracle(s, u)
+        J = tool_sensitivity(self.model, p, active)
+        var_q = self.settings.driver_accuracy_um**2 + (self.model.friction_std_per_um * np.abs(dq)) ** 2
+        out = np.sum(J * J * var_q, axis=1) + self.settings.gauge_noise_std_um**2
+        return float(out[0]) if np.ndim(u) == 1 else out

@@ -1,0 +1,64 @@
+"""``microctl emulate``: serve the simulated stage in the serial dialect on loopback TCP."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from microctl.commands._common import add_quiet
+from microctl.config import load_stage_config
+from microctl.emulator import Emulator, default_ports
+from microctl.errors import ConfigError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``emulate`` sub-command."""
+    p = subparsers.add_parser(
+        "emulate",
+        help="serve the simulated stage in the serial dialect until interrupted",
+        description="Serve the stage config's simulated stage on 127.0.0.1: one TCP port per PZT "
+        "controller (PI GCS 2 subset) and one for the gauge, until Ctrl-C.",
+    )
+    p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config with a backend.serial section")
+    p.add_argument("--host", default="127.0.0.1", help="loopback address to listen on (only 127.0.0.1)")
+    p.add_argument(
+        "--ports",
+        metavar="P1,P2,...",
+        help="ports for the controllers (config order) then the gauge; default from the config's "
+        "socket://127.0.0.1:P URLs",
+    )
+    p.add_argument("--seed", type=int, default=None, help="override backend.simulated.seed")
+    add_quiet(p)
+    p.set_defaults(func=_run)
+
+
+def _parse_ports(text: str) -> list[int]:
+    try:
+        ports = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--ports '{text}': expected comma-separated port numbers") from None
+    for port in ports:
+        if not 0 <= port <= 65535:
+            raise ConfigError(f"--ports: {port} is not a port number (0-65535)")
+    return ports
+
+
+def _run(args: argparse.Namespace, max_seconds: float | None = None) -> int:
+    config = load_stage_config(args.config)
+    ports = _parse_ports(args.ports) if args.ports else default_ports(config)
+    emu = Emulator(config, host=args.host, ports=ports, seed=args.seed)
+    bound = emu.start()
+    try:
+        for dev, port in bound.items():
+            print(f"emulate: {dev} on socket://127.0.0.1:{port}", flush=True)
+        if not args.quiet:
+            print("emulate: serving the simulated stage; Ctrl-C to stop", file=sys.stderr, flush=True)
+        t0 = time.monotonic()
+        while max_seconds is None or time.monotonic() - t0 < max_seconds:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    return 0
