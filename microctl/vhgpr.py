@@ -1,0 +1,1045 @@
+"""Variational heteroscedastic Gaussian process regression (VHGPR).
+
+The model and the marginalised variational ("MV") bound of Lázaro-Gredilla & Titsias
+(ICML 2011), written from the equations in ``notes/vhgpr.md`` (cited below as [N]):
+
+    y_i = f(x_i) + e_i,   e_i ~ N(0, exp(g(x_i))),   f ~ GP(0, K_f),   g ~ GP(mu0, K_g)
+
+    q(g) = N(mu, Sigma),  Sigma = (K_g^-1 + Lambda)^-1,  mu = K_g (Lambda - I/2) 1 + mu0 1     [N q(g)]
+
+    F = log N(y | 0, K_f + R) - KL(N(mu, Sigma) || N(mu0 1, K_g)) - tr(Sigma)/4,
+    R = diag(exp(mu_i - Sigma_ii / 2))                                                       [N bound]
+
+:class:`VHGPR` holds the settings and :meth:`VHGPR.fit` maximises ``F`` with analytic
+gradients (L-BFGS-B over log Lambda, log kernel hyperparameters and mu0); it returns a
+frozen :class:`FittedVHGPR` that holds everything a prediction needs and nothing else
+(see ``docs/vhgpr.md``).  Inputs and outputs are standardised; all quantities stored
+in the fitted model are in standardised units except where a field says otherwise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.linalg import lapack
+from scipy.optimize import minimize
+
+from microctl.errors import ConfigError, DataError, MicroctlError
+
+__all__ = ["FORMAT_VERSION", "VHGPR", "FittedVHGPR", "VHGPRPrediction", "ard_se"]
+
+#: Version of the ``.npz`` model file written by :meth:`FittedVHGPR.save`.
+FORMAT_VERSION = 1
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+# Box bounds of the optimised parameters, in standardised units (inputs and outputs have
+# unit variance), chosen wide enough never to bind on sensible data and narrow enough
+# that exp() cannot overflow and B = I + Lambda^1/2 K_g Lambda^1/2 stays well conditioned.
+_BOUNDS = {
+    "log_lambda": (-10.0, 10.0),
+    "log_lengthscale": (-5.0, 6.0),
+    "log_signal_var": (-12.0, 5.0),
+    "log_bias_var": (-12.0, 5.0),
+    "mu0": (-20.0, 5.0),
+    "log_noise_var": (-20.0, 2.0),  # homoscedastic initialisation only
+}
+
+# Largest number of points used by the homoscedastic GP that initialises the fit.
+_INIT_SUBSET = 400
+
+@contextlib.contextmanager
+def _blas_single_thread() -> Iterator[None]:
+    """Run the BLAS on one thread during a fit, if threadpoolctl is available.
+
+    Measured on the 2-core development machine: with other processes competing for the
+    cores, a multi-threaded OpenBLAS slows the n = 2000 bound evaluation from ~4 s to
+    20-50 s (threads spin waiting for each other), and for small n thread overhead
+    dominates anyway; one thread is predictable.  Without threadpoolctl (an optional
+    dependency) the BLAS keeps its own setting (e.g. ``OPENBLAS_NUM_THREADS``).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def _default_max_iter(n: int) -> int:
+    """Iterations per run when ``max_iter`` is None: 100 up to n = 200, then 100 (200/n)^0.6, at least 25.
+
+    Each iteration costs O(n^3), and with more points fewer iterations are needed: on the
+    synthetic benchmark (scripts/bench_vhgpr.py) the hold-out NLPD changes by < 1e-3 nats
+    after ~40 iterations at n = 500 and is within 0.005 nats of the oracle after 25 at
+    n = 2000, against ~100-150 iterations for the 133-point motorcycle data.  This gives
+    58 at n = 500, 38 at n = 1000 and 25 at n = 2000.
+    """
+    return int(max(25, min(100, round(100 * (200 / n) ** 0.6))))
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+def ard_se(
+    Xa: np.ndarray,
+    Xb: np.ndarray,
+    log_lengthscales: np.ndarray,
+    log_signal_var: float,
+    log_bias_var: float | None,
+) -> np.ndarray:
+    """Squared-exponential kernel with one lengthscale per input (ARD), plus an optional bias.
+
+    ``k(x, x') = exp(log_signal_var) * exp(-0.5 * sum_d ((x_d - x'_d) / exp(log_lengthscales_d))**2)
+    + (exp(log_bias_var) if log_bias_var is not None else 0)``
+
+    Parameters
+    ----------
+    Xa : ndarray, shape (m, d)
+    Xb : ndarray, shape (n, d)
+    log_lengthscales : ndarray, shape (d,)
+    log_signal_var : float
+    log_bias_var : float or None
+
+    Returns
+    -------
+    ndarray, shape (m, n)
+    """
+    K = _se_part(Xa, Xb, np.asarray(log_lengthscales, dtype=float), float(log_signal_var))
+    if log_bias_var is not None:
+        K += math.exp(float(log_bias_var))
+    return K
+
+
+def _se_part(Xa: np.ndarray, Xb: np.ndarray, log_ls: np.ndarray, log_sf2: float) -> np.ndarray:
+    """The SE part of :func:`ard_se`, shape (m, n), by |a|^2 + |b|^2 - 2 a.b (clipped at 0)."""
+    inv_ls = np.exp(-log_ls)
+    Za = np.asarray(Xa, dtype=float) * inv_ls
+    Zb = np.asarray(Xb, dtype=float) * inv_ls
+    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + np.einsum("ij,ij->i", Zb, Zb)[None, :]
+    sq -= 2.0 * (Za @ Zb.T)
+    np.maximum(sq, 0.0, out=sq)
+    sq *= -0.5
+    np.exp(sq, out=sq)
+    sq *= math.exp(log_sf2)
+    return sq
+
+
+def _kernel_grads(G: np.ndarray, Kse: np.ndarray, X: np.ndarray, log_ls: np.ndarray, bias: float | None) -> np.ndarray:
+    """Traces ``sum_ij G_ij dK_ij/dtheta`` for theta = (log lengthscales, log signal var[, log bias var]).
+
+    With Z = X / lengthscales, dK/dlog l_d = Kse * (z_id - z_jd)^2 and
+    sum_ij H_ij (z_id - z_jd)^2 = 2 sum_i z_id^2 (H 1)_i - 2 z_d^T H z_d for symmetric
+    H = G * Kse, so each trace costs one product H @ Z (no (n, n, d) temporaries).
+
+    Parameters
+    ----------
+    G : ndarray, shape (n, n), symmetric
+    Kse : ndarray, shape (n, n), the SE part of the kernel
+    X : ndarray, shape (n, d)
+    log_ls : ndarray, shape (d,)
+    bias : float or None, the bias variance exp(log_bias_var)
+
+    Returns
+    -------
+    ndarray, shape (d + 1 [+ 1],)
+    """
+    H = G * Kse
+    Z = X * np.exp(-log_ls)
+    h = H.sum(axis=1)
+    HZ = H @ Z
+    g_ls = 2.0 * (Z * Z).T @ h - 2.0 * np.einsum("ij,ij->j", Z, HZ)
+    out = [g_ls, [h.sum()]]
+    if bias is not None:
+        out.append([bias * G.sum()])
+    return np.concatenate(out)
+
+
+# --------------------------------------------------------------------------- linear algebra
+
+
+def _chol(A: np.ndarray, *, what: str) -> tuple[np.ndarray, float]:
+    """Lower Cholesky factor of symmetric ``A``; diagonal jitter only if plain Cholesky fails.
+
+    Returns the factor and the jitter added (0.0 when none).  Jitter grows from 1e-10 to
+    1e-4 times the mean diagonal; beyond that a :class:`numpy.linalg.LinAlgError` is raised.
+    """
+    L, info = lapack.dpotrf(A, lower=1, clean=1, overwrite_a=0)
+    if info == 0:
+        return L, 0.0
+    scale = float(np.mean(np.diag(A)))
+    if not np.isfinite(scale) or scale <= 0:
+        raise np.linalg.LinAlgError(f"{what}: non-finite or non-positive diagonal")
+    for k in range(-10, -3):
+        jitter = scale * 10.0**k
+        L, info = lapack.dpotrf(A + jitter * np.eye(A.shape[0]), lower=1, clean=1, overwrite_a=0)
+        if info == 0:
+            return L, jitter
+    raise np.linalg.LinAlgError(f"{what}: not positive definite even with jitter {jitter:.3g}")
+
+
+def _chol_inverse(L: np.ndarray) -> np.ndarray:
+    """Full symmetric inverse of L L^T from its lower Cholesky factor ``L`` (LAPACK potri).
+
+    ``L`` must have a zero upper triangle (``dpotrf(..., clean=1)``); potri writes the
+    lower triangle of the inverse, which is then mirrored.
+    """
+    Ainv, info = lapack.dpotri(L, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("potri failed")
+    Ainv += Ainv.T
+    Ainv[np.diag_indices(Ainv.shape[0])] *= 0.5
+    return Ainv
+
+
+# --------------------------------------------------------------------------- parameter layout
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where each block of parameters sits in the flat optimisation vector."""
+
+    n: int
+    d: int
+    bias: bool
+
+    @property
+    def n_kernel(self) -> int:
+        return self.d + 1 + int(self.bias)
+
+    @property
+    def f_slice(self) -> slice:
+        return slice(self.n, self.n + self.n_kernel)
+
+    @property
+    def g_slice(self) -> slice:
+        s = self.n + self.n_kernel
+        return slice(s, s + self.n_kernel)
+
+    @property
+    def size(self) -> int:
+        return self.n + 2 * self.n_kernel + 1
+
+    def kernel(self, block: np.ndarray) -> tuple[np.ndarray, float, float | None]:
+        """(log lengthscales, log signal var, log bias var or None) from a kernel block."""
+        return block[: self.d], float(block[self.d]), (float(block[self.d + 1]) if self.bias else None)
+
+    def bounds(self) -> list[tuple[float, float]]:
+        kb = [_BOUNDS["log_lengthscale"]] * self.d + [_BOUNDS["log_signal_var"]]
+        if self.bias:
+            kb.append(_BOUNDS["log_bias_var"])
+        return [_BOUNDS["log_lambda"]] * self.n + kb + kb + [_BOUNDS["mu0"]]
+
+
+# --------------------------------------------------------------------------- the bound
+
+
+def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, *, want_grad: bool = True,
+              want_state: bool = False) -> tuple[float, np.ndarray | None, dict | None]:
+    """The MV bound F and its gradient with respect to the flat parameter vector.
+
+    Parameters
+    ----------
+    theta : ndarray, shape (layout.size,)
+        ``[log lambda (n), f kernel (d+1[+1]), g kernel (d+1[+1]), mu0]``.
+    X : ndarray, shape (n, d), standardised inputs
+    y : ndarray, shape (n,), standardised outputs
+    layout : _Layout
+    want_grad : bool
+    want_state : bool
+        Also return the factors a fitted model stores.
+
+    Returns
+    -------
+    F : float
+    grad : ndarray, shape (layout.size,), or None
+    state : dict or None
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        If K_f + R is not positive definite even with jitter.
+    """
+    n = layout.n
+    log_lam = theta[:n]
+    lam = np.exp(log_lam)
+    f_ls, f_sf2, f_b = layout.kernel(theta[layout.f_slice])
+    g_ls, g_sf2, g_b = layout.kernel(theta[layout.g_slice])
+    mu0 = float(theta[-1])
+
+    Kf_se = _se_part(X, X, f_ls, f_sf2)
+    Kg_se = _se_part(X, X, g_ls, g_sf2)
+    Kf = Kf_se + math.exp(f_b) if f_b is not None else Kf_se
+    Kg = Kg_se + math.exp(g_b) if g_b is not None else Kg_se
+
+    # B = I + Lambda^1/2 K_g Lambda^1/2 [N stable forms]; its eigenvalues are >= 1.
+    s = np.sqrt(lam)
+    Bm = Kg * np.outer(s, s)
+    Bm[np.diag_indices(n)] += 1.0
+    LB, info = lapack.dpotrf(Bm, lower=1, clean=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("B = I + Lambda^1/2 K_g Lambda^1/2 is not positive definite")
+    T = _chol_inverse(LB)  # B^-1
+    logdet_B = 2.0 * float(np.sum(np.log(np.diag(LB))))
+
+    # Sigma = (K_g^-1 + Lambda)^-1 = Lambda^-1/2 (I - B^-1) Lambda^-1/2  (since
+    # Lambda^1/2 Sigma Lambda^1/2 = S (I + S)^-1 = I - B^-1 with S = Lambda^1/2 K_g Lambda^1/2).
+    sig_diag = (1.0 - np.diag(T)) / lam
+    beta = lam - 0.5  # (Lambda - I/2) 1
+    mu = Kg @ beta + mu0  # [N q(g)]
+
+    # R = diag(exp(mu_i - Sigma_ii / 2)) [N bound]
+    r = np.exp(mu - 0.5 * sig_diag)
+    A = Kf.copy()
+    A[np.diag_indices(n)] += r
+    LA, jitter = _chol(A, what="K_f + R")
+    Ainv = _chol_inverse(LA)
+    alpha = Ainv @ y
+
+    # log N(y | 0, K_f + R); the jitter (if any) is part of the covariance actually used.
+    log_lik = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(LA)))) - 0.5 * n * _LOG_2PI
+    # KL(N(mu, Sigma) || N(mu0 1, K_g)) = 1/2 [tr(K_g^-1 Sigma) + (mu - mu0)^T K_g^-1 (mu - mu0)
+    #     - n + log|K_g| - log|Sigma|] with tr(K_g^-1 Sigma) = tr(B^-1),
+    # (mu - mu0)^T K_g^-1 (mu - mu0) = beta^T K_g beta, log|K_g| - log|Sigma| = log|B|.
+    kl = 0.5 * (float(np.trace(T)) + float(beta @ (mu - mu0)) - n + logdet_B)
+    F = log_lik - kl - 0.25 * float(np.sum(sig_diag))
+
+    grad = None
+    if want_grad:
+        # dF/dR_ii = (alpha_i^2 - [A^-1]_ii)/2, so with w = r * that:
+        # dF/dmu = w - beta =: u (the -beta from dKL/dmu = K_g^-1 (mu - mu0) = beta), and
+        # dF/dSigma_ii = -w_i/2 + lambda_i/2 - 1/4 = -u_i/2 (dKL/dSigma = (K_g^-1 - Sigma^-1)/2 = -Lambda/2).
+        w = 0.5 * (alpha * alpha - np.diag(Ainv)) * r
+        u = w - beta
+        # dmu/dlambda_j = K_g[:, j]; dSigma_ii/dlambda_j = -Sigma_ij^2, so
+        # dF/dlambda = K_g u + (Sigma o Sigma) u / 2; times lambda for log lambda.
+        # Sigma o Sigma = (I - B^-1)^2 / (lambda lambda^T) elementwise: off-diagonal T_ij^2,
+        # diagonal (1 - T_ii)^2, both over lambda_i lambda_j.
+        tdiag = np.diag(T).copy()
+        Sig2u = (T * T) @ (u / lam)
+        Sig2u += ((1.0 - tdiag) ** 2 - tdiag**2) * u / lam
+        Sig2u /= lam
+        g_lam = lam * (Kg @ u + 0.5 * Sig2u)
+
+        # f hyperparameters: d log N / dtheta = tr(Gf dK_f/dtheta), Gf = (alpha alpha^T - A^-1)/2.
+        Gf = np.outer(0.5 * alpha, alpha)
+        Gf -= 0.5 * Ainv
+        g_f = _kernel_grads(Gf, Kf_se, X, f_ls, math.exp(f_b) if f_b is not None else None)
+        del Gf
+
+        # g hyperparameters: dF = tr(Gg dK_g) with, for fixed Lambda and mu0,
+        #  via mu = K_g beta + mu0:            sym(u beta^T)
+        #  via Sigma, dSigma = M^T dK_g M with M = (I + Lambda K_g)^-1 = Lambda^1/2 B^-1 Lambda^-1/2:
+        #                                      M C M^T, C = diag(-u/2)
+        #  directly through KL's K_g:          -1/2 (K_g^-1 - K_g^-1 Sigma K_g^-1 - beta beta^T)
+        #                                      = -1/2 Lambda^1/2 B^-1 Lambda^1/2 + beta beta^T / 2
+        c_over_lam = -0.5 * u / lam
+        Gg = T * c_over_lam[None, :]
+        Gg = Gg @ T  # B^-1 diag(c / lambda) B^-1
+        Gg -= 0.5 * T
+        Gg *= np.outer(s, s)
+        a = 0.5 * u + 0.25 * beta  # sym(u beta^T) + beta beta^T / 2 = a beta^T + beta a^T
+        Gg += np.outer(a, beta)
+        Gg += np.outer(beta, a)
+        g_g = _kernel_grads(Gg, Kg_se, X, g_ls, math.exp(g_b) if g_b is not None else None)
+        del Gg
+
+        # mu0 enters only through mu (KL depends on mu - mu0 = K_g beta): dF/dmu0 = sum(w).
+        grad = np.concatenate([g_lam, g_f, g_g, [float(np.sum(w))]])
+
+    state = None
+    if want_state:
+        state = {
+            "f_alpha": alpha,
+            "f_chol": LA,
+            "g_beta": beta,
+            # K_g + Lambda^-1 = Lambda^-1/2 B Lambda^-1/2, so its lower factor is Lambda^-1/2 L_B.
+            "g_chol": LB / s[:, None],
+            "jitter": jitter,
+            "mu": mu,
+            "sigma_diag": sig_diag,
+        }
+    return F, grad, state
+
+
+# --------------------------------------------------------------------------- homoscedastic GP
+
+
+def _gp_loglik(theta: np.ndarray, X: np.ndarray, y: np.ndarray, d: int, bias: bool) -> tuple[float, np.ndarray]:
+    """Log marginal likelihood of a homoscedastic GP and its gradient.
+
+    ``theta = [log lengthscales (d), log signal var, (log bias var), log noise var]``.
+    """
+    n = X.shape[0]
+    ls, sf2 = theta[:d], float(theta[d])
+    lb = float(theta[d + 1]) if bias else None
+    sn2 = math.exp(float(theta[-1]))
+    Kse = _se_part(X, X, ls, sf2)
+    A = Kse + math.exp(lb) if lb is not None else Kse.copy()
+    A[np.diag_indices(n)] += sn2
+    L, _ = _chol(A, what="homoscedastic GP covariance")
+    Ainv = _chol_inverse(L)
+    alpha = Ainv @ y
+    ll = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * n * _LOG_2PI
+    G = np.outer(0.5 * alpha, alpha) - 0.5 * Ainv
+    gk = _kernel_grads(G, Kse, X, ls, math.exp(lb) if lb is not None else None)
+    return ll, np.concatenate([gk, [sn2 * float(np.trace(G))]])
+
+
+def _fit_homoscedastic(X: np.ndarray, y: np.ndarray, bias: bool, rng: np.random.Generator) -> np.ndarray:
+    """Maximum-likelihood homoscedastic GP on (a random subset of at most 400 of) the data.
+
+    Returns ``[log lengthscales (d), log signal var, (log bias var), log noise var]``.
+    """
+    n, d = X.shape
+    if n > _INIT_SUBSET:
+        idx = rng.choice(n, _INIT_SUBSET, replace=False)
+        X, y = X[idx], y[idx]
+    bounds = [_BOUNDS["log_lengthscale"]] * d + [_BOUNDS["log_signal_var"]]
+    if bias:
+        bounds.append(_BOUNDS["log_bias_var"])
+    bounds.append(_BOUNDS["log_noise_var"])
+    best = None
+    # Two starts: "smooth, little noise" and "rough, more noise" (standardised units).
+    for ls0, sn0 in ((0.0, -2.0), (-1.5, -1.0)):
+        x0 = np.concatenate([np.full(d, ls0), [0.0], [-4.0] if bias else [], [sn0]])
+
+        def fun(t: np.ndarray) -> tuple[float, np.ndarray]:
+            try:
+                with np.errstate(all="ignore"):
+                    ll, g = _gp_loglik(t, X, y, d, bias)
+            except np.linalg.LinAlgError:
+                return 1e10, np.zeros_like(t)
+            if not (np.isfinite(ll) and np.all(np.isfinite(g))):
+                return 1e10, np.zeros_like(t)
+            return -ll, -g
+
+        res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": 200})
+        if np.isfinite(res.fun) and (best is None or res.fun < best.fun):
+            best = res
+    if best is None or best.fun >= 1e10:
+        raise MicroctlError("VHGPR: the homoscedastic GP that initialises the fit failed on these data")
+    return np.asarray(best.x, dtype=float)
+
+
+# --------------------------------------------------------------------------- fitted model and prediction
+
+
+@dataclass(frozen=True, eq=False)
+class VHGPRPrediction:
+    """Predictive distribution at m test inputs, in the ORIGINAL units of y.
+
+    Attributes
+    ----------
+    f_mean : ndarray, shape (m,)
+        ``y_mean + y_scale * a*``.
+    f_var : ndarray, shape (m,)
+        ``y_scale**2 * c*^2`` (epistemic variance of f).
+    g_mean : ndarray, shape (m,)
+        Mean of the log noise variance: ``mu* + 2 log(y_scale)``.
+    g_var : ndarray, shape (m,)
+        ``s*^2``, variance of the log noise variance.
+    y_mean : ndarray, shape (m,)
+        Equal to ``f_mean``.
+    y_var : ndarray, shape (m,)
+        ``f_var + exp(g_mean + g_var / 2)``.
+    """
+
+    f_mean: np.ndarray
+    f_var: np.ndarray
+    g_mean: np.ndarray
+    g_var: np.ndarray
+    y_mean: np.ndarray
+    y_var: np.ndarray
+
+
+_ARRAY_FIELDS = (
+    "x_mean", "x_scale", "X", "f_log_lengthscales", "g_log_lengthscales",
+    "log_lambda", "f_alpha", "f_chol", "g_beta", "g_chol",
+)
+_FLOAT_FIELDS = ("y_mean", "y_scale", "f_log_signal_var", "g_log_signal_var", "g_mu0", "bound")
+_OPTIONAL_FLOAT_FIELDS = ("f_log_bias_var", "g_log_bias_var")
+
+
+@dataclass(frozen=True, eq=False)
+class FittedVHGPR:
+    """A fitted VHGPR: everything a prediction needs (standardised units unless stated).
+
+    Attributes
+    ----------
+    x_mean, x_scale : ndarray, shape (d,)
+        Input standardisation ``xs = (x - x_mean) / x_scale``.
+    y_mean, y_scale : float
+        Output standardisation ``ys = (y - y_mean) / y_scale``.
+    X : ndarray, shape (n, d)
+        Standardised training inputs.
+    f_log_lengthscales, f_log_signal_var, f_log_bias_var
+        Kernel of f (see :func:`ard_se`); the bias is None when not used.
+    g_log_lengthscales, g_log_signal_var, g_log_bias_var
+        Kernel of g.
+    g_mu0 : float
+        Prior mean of g (standardised units).
+    log_lambda : ndarray, shape (n,)
+        Variational parameters log Lambda.
+    f_alpha : ndarray, shape (n,)
+        ``(K_f + R)^-1 ys``.
+    f_chol : ndarray, shape (n, n)
+        Lower Cholesky factor of ``K_f + R``.
+    g_beta : ndarray, shape (n,)
+        ``(Lambda - I/2) 1``.
+    g_chol : ndarray, shape (n, n)
+        Lower Cholesky factor of ``K_g + Lambda^-1``.
+    bound : float
+        The MV bound at the optimum (standardised data).
+    training_hash : str
+        sha256 hex of the original X and y as float64 bytes.
+    geometry_hash : str or None
+        Set by callers (``dataclasses.replace``) for residual models.
+    x_names : tuple of str
+        Input column names, if known.
+    y_name : str
+        Output column name, if known.
+    info : dict
+        Fit diagnostics: jitter, restarts tried/failed, iterations, time.
+    mean_coef : ndarray, shape (d,), or None
+        Coefficients of the linear prior mean of f in standardised units
+        (``m(x) = xs · mean_coef``, added to ``a*``); None for the constant prior mean.
+    """
+
+    x_mean: np.ndarray
+    x_scale: np.ndarray
+    y_mean: float
+    y_scale: float
+    X: np.ndarray
+    f_log_lengthscales: np.ndarray
+    f_log_signal_var: float
+    f_log_bias_var: float | None
+    g_log_lengthscales: np.ndarray
+    g_log_signal_var: float
+    g_log_bias_var: float | None
+    g_mu0: float
+    log_lambda: np.ndarray
+    f_alpha: np.ndarray
+    f_chol: np.ndarray
+    g_beta: np.ndarray
+    g_chol: np.ndarray
+    bound: float
+    training_hash: str
+    geometry_hash: str | None = None
+    x_names: tuple[str, ...] = ()
+    y_name: str = ""
+    info: dict = field(default_factory=dict)
+    mean_coef: np.ndarray | None = None
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of input dimensions d."""
+        return int(self.X.shape[1])
+
+    def _check_X(self, X: Any) -> np.ndarray:
+        X = _as_float_array(X, "X")
+        d = self.n_inputs
+        if X.ndim == 1 and d == 1:
+            X = X[:, None]
+        if X.ndim != 2 or X.shape[1] != d:
+            raise DataError(f"X has shape {X.shape}; this model expects shape (m, {d})")
+        _check_finite(X, "X")
+        return X
+
+    def predict(self, X: Any) -> VHGPRPrediction:
+        """Predictive distribution at the rows of ``X``.
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d), original units
+
+        Returns
+        -------
+        VHGPRPrediction
+            All fields of shape (m,), in original units of y.
+        """
+        X = self._check_X(X)
+        xs = (X - self.x_mean) / self.x_scale
+        m = xs.shape[0]
+        a = np.empty(m)
+        c2 = np.empty(m)
+        mu = np.empty(m)
+        s2 = np.empty(m)
+        kff = math.exp(self.f_log_signal_var) + (math.exp(self.f_log_bias_var) if self.f_log_bias_var is not None else 0.0)
+        kgg = math.exp(self.g_log_signal_var) + (math.exp(self.g_log_bias_var) if self.g_log_bias_var is not None else 0.0)
+        chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
+        for start in range(0, m, chunk):
+            sl = slice(start, min(m, start + chunk))
+            Kf = ard_se(xs[sl], self.X, self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var)
+            Kg = ard_se(xs[sl], self.X, self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var)
+            # [N prediction] a* = k_f*^T (K_f + R)^-1 y,  c*^2 = k_f** - ||f_chol^-1 k_f*||^2
+            a[sl] = Kf @ self.f_alpha
+            v = sla.solve_triangular(self.f_chol, Kf.T, lower=True, check_finite=False)
+            c2[sl] = kff - np.einsum("ij,ij->j", v, v)
+            # [N prediction] mu* = k_g*^T (Lambda - I/2) 1 + mu0,  s*^2 = k_g** - ||g_chol^-1 k_g*||^2
+            mu[sl] = Kg @ self.g_beta + self.g_mu0
+            v = sla.solve_triangular(self.g_chol, Kg.T, lower=True, check_finite=False)
+            s2[sl] = kgg - np.einsum("ij,ij->j", v, v)
+        np.maximum(c2, 0.0, out=c2)
+        np.maximum(s2, 0.0, out=s2)
+        if self.mean_coef is not None:
+            a += xs @ self.mean_coef  # linear prior mean m(x) of f (R&W 2.7, plug-in coefficients)
+        f_mean = self.y_mean + self.y_scale * a
+        f_var = self.y_scale**2 * c2
+        g_mean = mu + 2.0 * math.log(self.y_scale)
+        g_var = s2
+        y_var = f_var + np.exp(g_mean + 0.5 * g_var)
+        return VHGPRPrediction(f_mean=f_mean, f_var=f_var, g_mean=g_mean, g_var=g_var,
+                               y_mean=f_mean.copy(), y_var=y_var)
+
+    def nlpd(self, X: Any, y: Any) -> float:
+        """Mean negative log predictive density (nats) under the Gaussian N(y_mean, y_var).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        y : array_like, shape (m,)
+        """
+        X = self._check_X(X)
+        y = _as_float_array(y, "y")
+        if y.ndim != 1 or y.shape[0] != X.shape[0]:
+            raise DataError(f"y has shape {y.shape}; expected ({X.shape[0]},) to match X")
+        _check_finite(y, "y")
+        p = self.predict(X)
+        return float(np.mean(0.5 * (_LOG_2PI + np.log(p.y_var)) + 0.5 * (y - p.y_mean) ** 2 / p.y_var))
+
+    # ----------------------------------------------------------------------- persistence
+
+    def save(self, path: str | Path) -> None:
+        """Write the model to a ``.npz`` file readable with ``np.load(allow_pickle=False)``.
+
+        Arrays and floats are stored as float64 arrays; optional floats as arrays of length
+        0 (None) or 1; ``x_names``, ``info``, ``training_hash``, ``geometry_hash`` and
+        ``y_name`` as JSON text.
+
+        Raises
+        ------
+        DataError
+            If the file cannot be written.
+        """
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, dtype=np.int64)}
+        for name in _ARRAY_FIELDS:
+            arrays[name] = np.asarray(getattr(self, name), dtype=np.float64)
+        for name in _FLOAT_FIELDS:
+            arrays[name] = np.array(float(getattr(self, name)), dtype=np.float64)
+        for name in _OPTIONAL_FLOAT_FIELDS:
+            v = getattr(self, name)
+            arrays[name] = np.array([] if v is None else [float(v)], dtype=np.float64)
+        meta = {
+            "training_hash": self.training_hash,
+            "geometry_hash": self.geometry_hash,
+            "x_names": list(self.x_names),
+            "y_name": self.y_name,
+            "info": _jsonable(self.info),
+        }
+        arrays["meta_json"] = np.array(json.dumps(meta))
+        if self.mean_coef is not None:
+            arrays["mean_coef"] = np.asarray(self.mean_coef, dtype=np.float64)
+        path = Path(path)
+        try:
+            with path.open("wb") as fh:
+                np.savez(fh, **arrays)
+        except OSError as exc:
+            raise DataError(f"{path}: cannot write the model file: {exc.strerror or exc}") from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "FittedVHGPR":
+        """Read a model written by :meth:`save`.
+
+        Raises
+        ------
+        DataError
+            Naming the file: unreadable, not an ``.npz``, unknown format version, missing or
+            malformed arrays.
+        """
+        path = Path(path)
+        try:
+            npz = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise DataError(f"{path}: no such model file") from None
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            raise DataError(f"{path}: not a VHGPR model file (.npz): {exc}") from None
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise DataError(f"{path}: not a VHGPR model file (.npz archive expected, found a single array)")
+        with npz:
+            try:
+                data = {k: npz[k] for k in npz.files}
+            except (ValueError, OSError, zipfile.BadZipFile) as exc:
+                raise DataError(f"{path}: not a VHGPR model file (.npz): {exc}") from None
+        if "format_version" not in data:
+            raise DataError(f"{path}: not a VHGPR model file (no 'format_version' array)")
+        try:
+            version = int(data["format_version"])
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: malformed 'format_version'") from None
+        if version != FORMAT_VERSION:
+            raise DataError(f"{path}: model format version {version} is not supported (this microctl reads version {FORMAT_VERSION})")
+        needed = _ARRAY_FIELDS + _FLOAT_FIELDS + _OPTIONAL_FLOAT_FIELDS + ("meta_json",)
+        missing = [k for k in needed if k not in data]
+        if missing:
+            raise DataError(f"{path}: model file is missing array(s) {', '.join(repr(m) for m in missing)}")
+        kw: dict[str, Any] = {}
+        try:
+            for name in _ARRAY_FIELDS:
+                kw[name] = np.asarray(data[name], dtype=np.float64)
+            for name in _FLOAT_FIELDS:
+                kw[name] = float(data[name])
+            for name in _OPTIONAL_FLOAT_FIELDS:
+                v = np.asarray(data[name], dtype=np.float64).ravel()
+                if v.size > 1:
+                    raise ValueError(f"'{name}' has {v.size} values")
+                kw[name] = float(v[0]) if v.size else None
+            meta = json.loads(str(data["meta_json"]))
+            kw["training_hash"] = str(meta["training_hash"])
+            gh = meta.get("geometry_hash")
+            kw["geometry_hash"] = None if gh is None else str(gh)
+            kw["x_names"] = tuple(str(s) for s in meta.get("x_names", []))
+            kw["y_name"] = str(meta.get("y_name", ""))
+            kw["info"] = dict(meta.get("info", {}))
+        except (TypeError, ValueError, KeyError) as exc:
+            raise DataError(f"{path}: malformed model file: {exc}") from None
+        X = kw["X"]
+        if X.ndim != 2 or X.shape[0] < 1:
+            raise DataError(f"{path}: malformed model file: 'X' has shape {X.shape}")
+        n, d = X.shape
+        shapes = {
+            "x_mean": (d,), "x_scale": (d,), "f_log_lengthscales": (d,), "g_log_lengthscales": (d,),
+            "log_lambda": (n,), "f_alpha": (n,), "g_beta": (n,), "f_chol": (n, n), "g_chol": (n, n),
+        }
+        if "mean_coef" in data:  # optional: linear prior mean
+            kw["mean_coef"] = np.asarray(data["mean_coef"], dtype=np.float64)
+            shapes["mean_coef"] = (d,)
+            _freeze(kw["mean_coef"])
+        for name, shape in shapes.items():
+            if kw[name].shape != shape:
+                raise DataError(f"{path}: malformed model file: '{name}' has shape {kw[name].shape}, expected {shape}")
+        for name in _ARRAY_FIELDS:
+            _freeze(kw[name])
+        return cls(**kw)
+
+
+# --------------------------------------------------------------------------- the trainer
+
+
+class VHGPR:
+    """Settings of the VHGPR trainer (scikit-learn style); :meth:`fit` returns a :class:`FittedVHGPR`.
+
+    Parameters
+    ----------
+    bias : bool
+        Add a constant (bias) term to both kernels.
+    n_restarts : int
+        Number of optimisation runs in total (>= 1).  The first starts from the
+        homoscedastic GP fit; the others from seeded random perturbations of it.  The run
+        with the largest bound wins; runs that fail numerically are recorded and skipped.
+    max_iter : int or None
+        L-BFGS-B iterations per run (function evaluations are capped at 1.25 times this).
+        None (default): 100 for n <= 200, then 100 (200/n)^0.6 but at least 25 (58 at
+        n = 500, 25 at n = 2000), since each iteration costs O(n^3) and more data need fewer.
+    random_state : int or None
+        Seed of the perturbations and of the initialisation subset (None: fresh entropy).
+    tol : float
+        L-BFGS-B ``ftol`` (relative decrease of the negative bound).
+    max_time : float or None
+        Wall-clock budget in seconds for all runs together; a run that reaches it stops
+        and keeps its best point so far.  None: no budget.
+    mean : {"constant", "linear"}
+        Prior mean of f. ``"constant"`` (default): the output mean, as in the notes.
+        ``"linear"``: a linear function of the standardised inputs, fitted by least squares
+        before the GP (plug-in coefficients, Rasmussen & Williams 2006, sect. 2.7); the GP
+        then models what the linear trend leaves. Suits AFM residuals, which are dominated by
+        linear miscalibration (actuator gains, offsets, sensor scale) that an SE kernel
+        extrapolates poorly towards the faces of the workspace.
+    """
+
+    def __init__(
+        self,
+        *,
+        bias: bool = False,
+        n_restarts: int = 2,
+        max_iter: int | None = None,
+        random_state: int | None = 0,
+        tol: float = 1e-9,
+        max_time: float | None = None,
+        mean: str = "constant",
+    ) -> None:
+        if int(n_restarts) != n_restarts or n_restarts < 1:
+            raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
+        if max_iter is not None and (int(max_iter) != max_iter or max_iter < 1):
+            raise ConfigError(f"VHGPR: max_iter must be an integer >= 1, got {max_iter!r}")
+        if not (tol > 0):
+            raise ConfigError(f"VHGPR: tol must be positive, got {tol!r}")
+        if max_time is not None and not (max_time > 0):
+            raise ConfigError(f"VHGPR: max_time must be positive or None, got {max_time!r}")
+        self.bias = bool(bias)
+        self.n_restarts = int(n_restarts)
+        self.max_iter = None if max_iter is None else int(max_iter)
+        self.random_state = random_state
+        if mean not in ("constant", "linear"):
+            raise ConfigError(f"VHGPR: mean must be 'constant' or 'linear', got {mean!r}")
+        self.tol = float(tol)
+        self.max_time = max_time
+        self.mean = mean
+
+    def __repr__(self) -> str:
+        return (f"VHGPR(bias={self.bias}, n_restarts={self.n_restarts}, max_iter={self.max_iter}, "
+                f"random_state={self.random_state}, tol={self.tol}, max_time={self.max_time}, mean={self.mean!r})")
+
+    def fit(self, X: Any, y: Any) -> FittedVHGPR:
+        """Maximise the MV bound on (X, y).
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)  (a 1-D array is taken as one input column)
+        y : array_like, shape (n,)
+
+        Returns
+        -------
+        FittedVHGPR
+
+        Raises
+        ------
+        DataError
+            Non-finite values, wrong shapes, n < 2, mismatched lengths, constant y.
+        MicroctlError
+            Every optimisation run failed numerically.
+        """
+        t0 = time.perf_counter()
+        X, y = _validate_training(X, y)
+        with _blas_single_thread():
+            return self._fit(X, y, t0)
+
+    def _fit(self, X: np.ndarray, y: np.ndarray, t0: float) -> FittedVHGPR:
+        n, d = X.shape
+        training_hash = hashlib.sha256(
+            np.ascontiguousarray(X, dtype=np.float64).tobytes() + np.ascontiguousarray(y, dtype=np.float64).tobytes()
+        ).hexdigest()
+
+        x_mean = X.mean(axis=0)
+        x_scale = X.std(axis=0)
+        x_scale[x_scale <= 1e-12 * np.maximum(1.0, np.abs(x_mean))] = 1.0  # constant input column
+        y_mean = float(y.mean())
+        y_scale = float(y.std())
+        Xs = (X - x_mean) / x_scale
+        ys = (y - y_mean) / y_scale
+        mean_coef = None
+        if self.mean == "linear":
+            # plug-in linear prior mean: least squares on the standardised (centred) inputs;
+            # the GP is fitted to what it leaves (R&W 2.7)
+            mean_coef, *_ = np.linalg.lstsq(Xs, ys, rcond=None)
+            ys = ys - Xs @ mean_coef
+
+        rng = np.random.default_rng(self.random_state)
+        layout = _Layout(n=n, d=d, bias=self.bias)
+        gp = _fit_homoscedastic(Xs, ys, self.bias, rng)
+        kern = gp[:-1]
+        # Initial point [N]: f's kernel from the homoscedastic GP, mu0 = its log noise,
+        # Lambda = 1/2 (so mu = mu0); g's kernel: f's lengthscales, unit signal variance.
+        g_kern = kern.copy()
+        g_kern[d] = 0.0
+        if self.bias:
+            g_kern[d + 1] = -4.0
+        x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, [gp[-1]]])
+        lo, hi = (np.array(b) for b in zip(*layout.bounds()))
+        x_init = np.clip(x_init, lo, hi)
+
+        max_iter = self.max_iter if self.max_iter is not None else _default_max_iter(n)
+        deadline = None if self.max_time is None else t0 + float(self.max_time)
+        runs: list[dict] = []
+        best: tuple[float, np.ndarray] | None = None
+        for k in range(self.n_restarts):
+            if k == 0:
+                x0 = x_init
+            else:
+                x0 = x_init.copy()
+                x0[:n] += 0.1 * rng.standard_normal(n)
+                x0[n:-1] += 0.5 * rng.standard_normal(x0.size - n - 1)
+                x0[-1] += 0.5 * rng.standard_normal()
+                x0 = np.clip(x0, lo, hi)
+            if deadline is not None and time.perf_counter() >= deadline and best is not None:
+                runs.append({"start": k, "status": "skipped", "reason": "time budget exhausted"})
+                continue
+            run = self._run(x0, Xs, ys, layout, deadline, max_iter)
+            run["start"] = k
+            x_run = run.pop("x", None)
+            runs.append(run)
+            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
+                best = (run["bound"], x_run)
+        if best is None:
+            reasons = "; ".join(f"run {r['start']}: {r.get('reason', r['status'])}" for r in runs)
+            raise MicroctlError(f"VHGPR: every optimisation run failed ({reasons})")
+
+        theta = best[1]
+        F, _, state = _mv_bound(theta, Xs, ys, layout, want_grad=False, want_state=True)
+        f_ls, f_sf2, f_b = layout.kernel(theta[layout.f_slice])
+        g_ls, g_sf2, g_b = layout.kernel(theta[layout.g_slice])
+        info = {
+            "jitter": float(state["jitter"]),
+            "restarts_tried": len(runs),
+            "restarts_failed": sum(r["status"] == "failed" for r in runs),
+            "runs": runs,
+            "iterations": int(sum(r.get("iterations", 0) for r in runs)),
+            "evaluations": int(sum(r.get("evaluations", 0) for r in runs)),
+            "homoscedastic_init": {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]},
+            "time_s": time.perf_counter() - t0,
+            "settings": {"bias": self.bias, "n_restarts": self.n_restarts, "max_iter": max_iter,
+                         "random_state": self.random_state, "tol": self.tol, "max_time": self.max_time,
+                         "mean": self.mean},
+        }
+        arrays = {
+            "x_mean": x_mean, "x_scale": x_scale, "X": Xs,
+            "f_log_lengthscales": np.array(f_ls), "g_log_lengthscales": np.array(g_ls),
+            "log_lambda": theta[:n].copy(), "f_alpha": state["f_alpha"], "f_chol": state["f_chol"],
+            "g_beta": state["g_beta"], "g_chol": state["g_chol"],
+        }
+        for a in arrays.values():
+            _freeze(a)
+        if mean_coef is not None:
+            _freeze(mean_coef)
+        return FittedVHGPR(
+            **arrays,
+            y_mean=y_mean, y_scale=y_scale,
+            f_log_signal_var=f_sf2, f_log_bias_var=f_b,
+            g_log_signal_var=g_sf2, g_log_bias_var=g_b,
+            g_mu0=float(theta[-1]), bound=float(F), training_hash=training_hash, info=info,
+            mean_coef=mean_coef,
+        )
+
+    def _run(self, x0: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: _Layout, deadline: float | None,
+             max_iter: int) -> dict:
+        """One L-BFGS-B run from ``x0``; returns a record (status, bound, iterations, x)."""
+        t0 = time.perf_counter()
+        n = layout.n
+        best: list[Any] = [np.inf, None]  # lowest negative bound seen, and where
+        counter = {"evals": 0, "failed_evals": 0}
+        eval_times: list[float] = []
+
+        class _OutOfTime(Exception):
+            pass
+
+        def fun(theta: np.ndarray) -> tuple[float, np.ndarray]:
+            if deadline is not None and time.perf_counter() > deadline and best[1] is not None:
+                raise _OutOfTime
+            counter["evals"] += 1
+            te = time.perf_counter()
+            try:
+                with np.errstate(all="ignore"):
+                    F, g, st = _mv_bound(theta, Xs, ys, layout, want_state=False)
+            except np.linalg.LinAlgError:
+                F, g = np.nan, None
+            if not np.isfinite(F) or g is None or not np.all(np.isfinite(g)):
+                # A numerically impossible point: report a huge value so the line search backs off.
+                counter["failed_evals"] += 1
+                return 1e25, np.zeros_like(theta)
+            eval_times.append(time.perf_counter() - te)
+            if -F < best[0]:
+                best[0], best[1] = -F, theta.copy()
+            # Minimise -F/n: per-point scaling keeps L-BFGS-B's first (unit, projected) step
+            # small whatever n is, and makes ``tol`` mean the same for every n.
+            return -F / n, -g / n
+
+        record: dict[str, Any] = {}
+        try:
+            res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=layout.bounds(),
+                           options={"maxiter": max_iter, "maxfun": int(1.25 * max_iter) + 10,
+                                    "ftol": self.tol, "gtol": 1e-6})
+            record.update(iterations=int(res.nit), message=str(res.message), converged=bool(res.success))
+        except _OutOfTime:
+            record.update(iterations=None, message="stopped: time budget reached", converged=False)
+        record.update(evaluations=counter["evals"], failed_evaluations=counter["failed_evals"],
+                      time_s=time.perf_counter() - t0,
+                      eval_time_median_s=float(np.median(eval_times)) if eval_times else None,
+                      eval_time_max_s=float(np.max(eval_times)) if eval_times else None)
+        if best[1] is None:
+            record.update(status="failed", reason="no finite bound at any evaluated point")
+            return record
+        # Re-evaluate the winner without error suppression, to make sure it is sound.
+        try:
+            F, _, _ = _mv_bound(best[1], Xs, ys, layout, want_grad=False)
+        except np.linalg.LinAlgError as exc:
+            record.update(status="failed", reason=f"final point not positive definite: {exc}")
+            return record
+        if not np.isfinite(F):
+            record.update(status="failed", reason="non-finite bound at the final point")
+            return record
+        if record["iterations"] is None:
+            record["iterations"] = counter["evals"]
+        record.update(status="ok", bound=float(F), x=best[1])
+        return record
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _as_float_array(a: Any, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{name} is not numeric: {exc}") from None
+    return arr
+
+
+def _check_finite(a: np.ndarray, name: str) -> None:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = f"row {idx[0]}" + (f", column {idx[1]}" if len(idx) > 1 else "")
+        raise DataError(f"{name} has a non-finite value ({a[idx]}) at {where} (0-based); NaN and inf are not allowed")
+
+
+def _validate_training(X: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Check and convert training data; DataError with a clear message otherwise."""
+    X = _as_float_array(X, "X")
+    y = _as_float_array(y, "y")
+    if X.ndim == 1:
+        X = X[:, None]
+    if X.ndim != 2:
+        raise DataError(f"X has {X.ndim} dimensions (shape {X.shape}); expected a 2-D array of shape (n, d)")
+    if X.shape[1] < 1:
+        raise DataError(f"X has shape {X.shape}; it needs at least one input column")
+    if y.ndim != 1:
+        raise DataError(f"y has shape {y.shape}; expected a 1-D array of shape (n,)")
+    if X.shape[0] != y.shape[0]:
+        raise DataError(f"X has {X.shape[0]} rows but y has {y.shape[0]} values; they must match")
+    if X.shape[0] < 2:
+        raise DataError(f"{X.shape[0]} training point(s); at least 2 are needed")
+    _check_finite(X, "X")
+    _check_finite(y, "y")
+    if not float(np.std(y)) > 1e-12 * max(1.0, float(np.max(np.abs(y)))):
+        raise DataError(f"y is constant (every value is {y[0]:g}); there is nothing to regress")
+    return np.array(X, dtype=np.float64), np.array(y, dtype=np.float64)
+
+
+def _freeze(a: np.ndarray) -> None:
+    a.setflags(write=False)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
