@@ -1,0 +1,105 @@
+"""``microctl solve``: the optimal control signal for one target (paper eq. 4) beside the AFM baseline."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+
+from microctl.afm import AnalyticForwardModel
+from microctl.commands._common import print_json
+from microctl.config import load_stage_config
+from microctl.controller import R_E_SETTINGS, AFMController, ControllerSettings, OptimalController
+from microctl.eafm import EAFM
+from microctl.errors import ConfigError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``solve`` sub-command."""
+    p = subparsers.add_parser(
+        "solve",
+        help="optimal control signal for one target, beside the AFM baseline",
+        description="Minimise 1 - exp(-r_e(s, u)) subject to the EAFM-predicted tool pose = target and "
+        "every actuator in range (paper eq. 4), from the given state; print u*, q*, the predicted pose "
+        "mean and std, IPOPT status and solve time, and the AFM baseline's u and predicted std.",
+    )
+    p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
+    p.add_argument("--model", required=True, metavar="MODEL.npz", help="residual model from `microctl train`")
+    p.add_argument("--target", required=True, type=float, metavar="T_UM", help="target tool pose (µm)")
+    p.add_argument("--state", default=None, metavar="t,q1,..",
+                   help="state s = [t; q] before the move, comma-separated µm (default: zero state)")
+    p.add_argument("--r-e", default="noise_median", choices=R_E_SETTINGS,
+                   help="noise variance r_e of eq. 4 (default noise_median)")
+    p.add_argument("--json", action="store_true", help="print JSON on stdout")
+    p.set_defaults(func=_run)
+
+
+def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
+    """Parse ``--state`` (``t,q1,..``) into shape (n_s,); ConfigError naming the value."""
+    if text is None:
+        return afm.zero_state()
+    parts = [p.strip() for p in text.split(",")]
+    names = ", ".join(afm.state_names)
+    if len(parts) != afm.n_s:
+        raise ConfigError(f"--state {text!r}: {len(parts)} value(s), expected {afm.n_s} ({names})")
+    out = np.empty(afm.n_s)
+    for k, (p, name) in enumerate(zip(parts, afm.state_names)):
+        try:
+            out[k] = float(p)
+        except ValueError:
+            raise ConfigError(f"--state {text!r}: {name} = {p!r} is not a number") from None
+        if not math.isfinite(out[k]):
+            raise ConfigError(f"--state {text!r}: {name} = {p!r} is not finite")
+    return out
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = load_stage_config(args.config)
+    afm = AnalyticForwardModel(config.stage)
+    state = parse_state(args.state, afm)
+    if not math.isfinite(args.target):
+        raise ConfigError(f"--target {args.target!r} is not a finite number")
+    eafm = EAFM(afm, args.model)
+    settings = ControllerSettings(r_e=args.r_e)
+    res = OptimalController(eafm, settings).solve(args.target, state)
+    base = AFMController(afm, settings, reporter=eafm).solve(args.target, state)
+    dof = afm.dof
+    out = {
+        "target_um": res.target_um,
+        "state": {n: float(v) for n, v in zip(afm.state_names, state)},
+        "u": {n: float(v) for n, v in zip(dof, res.u)},
+        "q_um": res.q.tolist(),
+        "predicted_um": res.predicted_um,
+        "predicted_std_um": res.predicted_std_um,
+        "objective": res.objective,
+        "r_e": settings.r_e,
+        "status": res.status,
+        "success": res.success,
+        "iterations": res.iterations,
+        "solve_time_s": res.solve_time_s,
+        "baseline": {
+            "controller": "afm",
+            "u": {n: float(v) for n, v in zip(dof, base.u)},
+            "q_um": base.q.tolist(),
+            "predicted_um": base.predicted_um,
+            "predicted_std_um": base.predicted_std_um,
+            "status": base.status,
+        },
+    }
+    if args.json:
+        print_json(out)
+        return 0
+    units = {"z": "µm"}
+    print(f"target {res.target_um:g} µm from state [{', '.join(f'{v:g}' for v in state)}]")
+    print(f"{'':18s} {'EAFM (eq. 4)':>14s} {'AFM baseline':>14s}")
+    for k, n in enumerate(dof):
+        label = f"u_{n} ({units.get(n, 'mrad')})"
+        print(f"{label:18s} {res.u[k]:14.6f} {base.u[k]:14.6f}")
+    for k, n in enumerate(afm.actuator_names):
+        print(f"{n + ' (µm)':18s} {res.q[k]:14.6f} {base.q[k]:14.6f}")
+    print(f"{'predicted (µm)':18s} {res.predicted_um:14.6f} {base.predicted_um:14.6f}")
+    print(f"{'pred. std (µm)':18s} {res.predicted_std_um:14.6f} {base.predicted_std_um:14.6f}")
+    print(f"IPOPT: {res.status}, {res.iterations} iterations, {res.n_starts} start(s), "
+          f"{res.solve_time_s * 1e3:.1f} ms; r_e = {settings.r_e}")
+    return 0

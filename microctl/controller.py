@@ -1,0 +1,738 @@
+"""The optimal controller of the paper (eq. 4) and two baselines, behind one interface.
+
+Every controller has ``solve(target_um, state=None, *, u_init=None) -> ControlResult``:
+
+- :class:`OptimalController` (EAFM): ``min_u 1 - exp(-r_e(s, u))`` (eq. 4) subject to the
+  predicted tool pose ``T_t (f_a(s, u) + g_e(s, u)) = t_d`` and ``lo <= K u <= hi``. The
+  problem is non-convex over the redundant poses, so it is seeded globally: the redundant
+  set ``{u : t_mean(s, u) = t_d, lo <= K u <= hi}`` has dimension n_p - 1 (2 for Table I);
+  a grid in the null-space coordinates of the tool map w, each point moved along w by a
+  few Newton steps onto the EAFM-mean surface, is scored with vectorised NumPy, and the
+  best local minima of the grid are polished by IPOPT (``nlpsol``, built once per model
+  with target and state as parameters).
+- :class:`AFMController`: the AFM alone, smallest actuator motion:
+  ``min ||K u - q_prev||^2`` s.t. AFM ``t(u) = t_d``, ``lo <= K u <= hi``.
+- :class:`EAFMMeanController`: the same objective with the EAFM-mean constraint (accuracy
+  without the variance objective).
+
+No result ever carries a command outside the actuator ranges: every returned u is checked
+(``lo - 1e-9 <= K u <= hi + 1e-9``, q clipped into the ranges) together with the
+constraint residual (``<= ControllerSettings.constraint_tol``); when IPOPT fails, the best
+feasible seed is returned (``success=False``, status naming IPOPT's) or SolveError raised.
+See ``docs/controller.md``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+try:  # shipped with scikit-learn/scipy stacks; optional
+    from threadpoolctl import ThreadpoolController
+except ImportError:  # pragma: no cover
+    ThreadpoolController = None
+
+from microctl.afm import AnalyticForwardModel
+from microctl.eafm import EAFM
+from microctl.errors import ConfigError, SolveError
+
+__all__ = [
+    "R_E_SETTINGS", "ControllerSettings", "ControlResult", "OptimalController", "AFMController",
+    "EAFMMeanController", "RedundantSet",
+]
+
+#: Choices of r_e in eq. 4 (µm²): the median exp(g_mean) of the log-normal noise variance,
+#: its mean exp(g_mean + g_var/2), or that mean plus the epistemic variance f_var.
+R_E_SETTINGS = ("noise_median", "noise_mean", "noise_mean_plus_epistemic")
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Settings of the controllers.
+
+    Attributes
+    ----------
+    r_e : str
+        Noise variance of eq. 4, one of :data:`R_E_SETTINGS` (default ``"noise_median"``).
+    grid : int
+        Grid points per null-space axis of the global seeding (``grid**(n_p-1)`` points).
+    newton_steps : int
+        Newton steps along w that move each grid point onto the EAFM-mean surface.
+    n_polish : int
+        Largest number of grid local minima polished by IPOPT.
+    polish_ratio : float
+        Only local minima with seed objective ``<= polish_ratio * best`` are polished.
+    constraint_tol : float
+        Largest accepted ``|t_mean(s, u) - t_d|`` (µm) of a returned command.
+    range_tol : float
+        Largest accepted excursion of ``K u`` beyond the actuator ranges (µm) before q is
+        clipped into them.
+    ipopt_tol : float
+        IPOPT ``tol``.
+    max_iter : int
+        IPOPT ``max_iter`` per start.
+    """
+
+    r_e: str = "noise_median"
+    grid: int = 15
+    newton_steps: int = 4
+    n_polish: int = 2
+    polish_ratio: float = 1.1
+    constraint_tol: float = 1e-8
+    range_tol: float = 1e-9
+    ipopt_tol: float = 1e-8
+    max_iter: int = 200
+
+    def __post_init__(self) -> None:
+        if self.r_e not in R_E_SETTINGS:
+            raise ConfigError(f"controller setting r_e: {self.r_e!r} is not one of {', '.join(R_E_SETTINGS)}")
+        if int(self.grid) != self.grid or self.grid < 2:
+            raise ConfigError(f"controller setting grid: must be an integer >= 2, got {self.grid!r}")
+        if int(self.n_polish) != self.n_polish or self.n_polish < 1:
+            raise ConfigError(f"controller setting n_polish: must be an integer >= 1, got {self.n_polish!r}")
+        if not self.polish_ratio >= 1.0:
+            raise ConfigError(f"controller setting polish_ratio: must be >= 1, got {self.polish_ratio!r}")
+
+
+@dataclass(frozen=True)
+class ControlResult:
+    """The outcome of one ``solve``.
+
+    Attributes
+    ----------
+    controller : str
+        ``"eafm"``, ``"afm"`` or ``"eafm_mean"``.
+    target_um : float
+    state : ndarray, shape (n_s,)
+        s = [t; q] the command was computed from.
+    u : ndarray, shape (n_p,)
+        Control signal (platform pose: µm, mrad, mrad).
+    q : ndarray, shape (n_q,)
+        Actuator commands K u (eq. 12), inside the ranges.
+    predicted_um, predicted_std_um : float
+        EAFM predictive mean and std of the tool pose at u (``std = sqrt(f_var +
+        exp(g_mean + g_var/2))``); for the AFM controller without an EAFM to report with,
+        the AFM prediction and NaN.
+    objective : float
+        The controller's own objective at u (eq. 4 for ``eafm``; ``||K u - q_prev||^2`` µm²
+        for the baselines).
+    status : str
+        IPOPT return status of the accepted start (``"...; fallback to seed"`` on failure).
+    iterations : int
+        IPOPT iterations summed over all starts.
+    solve_time_s : float
+        Wall time of the whole call (seeding included).
+    success : bool
+        IPOPT converged on the returned command and all checks passed.
+    constraint_residual : float
+        ``|t_pred(u) - target|`` under the controller's constraint model (µm).
+    n_starts : int
+        IPOPT starts made.
+    """
+
+    controller: str
+    target_um: float
+    state: np.ndarray
+    u: np.ndarray
+    q: np.ndarray
+    predicted_um: float
+    predicted_std_um: float
+    objective: float
+    status: str
+    iterations: int
+    solve_time_s: float
+    success: bool
+    constraint_residual: float
+    n_starts: int
+
+    def to_dict(self, names: tuple[str, ...] | None = None) -> dict:
+        """Plain-Python form; ``u`` as a dict when DoF ``names`` are given."""
+        u = {n: float(v) for n, v in zip(names, self.u)} if names else [float(v) for v in self.u]
+        return {
+            "controller": self.controller, "target_um": self.target_um, "state": self.state.tolist(),
+            "u": u, "q_um": self.q.tolist(), "predicted_um": self.predicted_um,
+            "predicted_std_um": self.predicted_std_um, "objective": self.objective, "status": self.status,
+            "iterations": self.iterations, "solve_time_s": self.solve_time_s, "success": self.success,
+            "constraint_residual_um": self.constraint_residual, "n_starts": self.n_starts,
+        }
+
+
+_IPOPT_OPTS = {
+    "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "error_on_fail": False,
+    # no relaxation of the actuator ranges: a returned K u must lie inside them
+    "ipopt.bound_relax_factor": 0.0,
+}
+
+
+def _ipopt_options(settings: ControllerSettings) -> dict:
+    opts = dict(_IPOPT_OPTS)
+    opts["ipopt.tol"] = settings.ipopt_tol
+    opts["ipopt.constr_viol_tol"] = settings.constraint_tol * 0.1
+    opts["ipopt.max_iter"] = int(settings.max_iter)
+    opts["ipopt.mu_strategy"] = "adaptive"
+    opts["ipopt.mu_init"] = 1e-4  # starts are near-optimal seeds: a small barrier keeps them there
+    return opts
+
+
+_POOL: list = []
+
+
+class _SingleThreadBLAS:
+    """Limit BLAS to one thread inside a solve.
+
+    The seeding products are small (m x 8 times 8 x n); on this 2-core machine a
+    multi-threaded OpenBLAS made them up to 80x slower whenever the other core was busy
+    (measured: 15.8 ms vs 0.2 ms for 150 x 8 @ 8 x 2000). Entering costs ~12 µs.
+    """
+
+    def __enter__(self):
+        if ThreadpoolController is None:
+            self._ctx = None
+            return self
+        if not _POOL:
+            _POOL.append(ThreadpoolController())
+        self._ctx = _POOL[0].limit(limits=1, user_api="blas")
+        self._ctx.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._ctx is not None:
+            self._ctx.__exit__(*exc)
+
+
+# --------------------------------------------------------------------------- redundant set
+
+
+class RedundantSet:
+    """Null-space coordinates of the tool map over the workspace polytope (for seeding).
+
+    With ``D = diag(u_hi - u_lo) / 2`` and ``u = D v``, the AFM tool constraint is
+    ``(D w)·v = d``; ``v = v_hat d / |D w| + N c`` with N an orthonormal basis of the null
+    space of ``D w``. The section of the workspace polytope by that plane is bounded by the
+    crossings of the polytope's edges with the plane (vertices and edges precomputed).
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    """
+
+    def __init__(self, afm: AnalyticForwardModel):
+        self.afm = afm
+        ws = afm.workspace
+        self.D = np.maximum((ws.u_hi - ws.u_lo) / 2.0, 1e-12)
+        self.w = np.asarray(afm.w_pred, dtype=float)
+        wt = self.D * self.w
+        self.wt_norm = float(np.linalg.norm(wt))
+        self.v_hat = wt / self.wt_norm
+        # orthonormal complement of v_hat
+        _, _, Vt = np.linalg.svd(self.v_hat[None, :])
+        self.N = Vt[1:].T  # (n_p, n_p - 1)
+        self.dir_u = self.D * self.v_hat  # moving u along D v_hat changes w·u by wt_norm per unit
+        self.vertices, self.edges = self._polytope(afm)
+
+    @staticmethod
+    def _polytope(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (m, n_p) of {lo <= K u <= hi} and edges as index pairs (e, 2)."""
+        K, lo, hi = afm.K, afm.lo, afm.hi
+        A = np.vstack([K, -K])
+        b = np.concatenate([hi, -lo])
+        n_p = K.shape[1]
+        verts: list[np.ndarray] = []
+        active: list[frozenset] = []
+        for combo in itertools.combinations(range(A.shape[0]), n_p):
+            Ac = A[list(combo)]
+            if abs(np.linalg.det(Ac)) < 1e-12:
+                continue
+            v = np.linalg.solve(Ac, b[list(combo)])
+            if np.all(A @ v <= b + 1e-9):
+                act = frozenset(np.flatnonzero(np.abs(A @ v - b) <= 1e-9).tolist())
+                if not any(np.allclose(v, w) for w in verts):
+                    verts.append(v)
+                    active.append(act)
+        edges = [(i, j) for i, j in itertools.combinations(range(len(verts)), 2)
+                 if len(active[i] & active[j]) >= n_p - 1
+                 and np.linalg.matrix_rank(A[sorted(active[i] & active[j])]) >= n_p - 1]
+        return np.array(verts), np.array(edges, dtype=int).reshape(-1, 2)
+
+    def d_of_target(self, target: float) -> float:
+        """Linear tool displacement d = w·u whose gauge reading is ``target`` (inverts the sensor)."""
+        a, b = self.afm.quad, self.afm.scale
+        if a == 0.0:
+            return target / b
+        disc = b * b + 4.0 * a * target
+        if disc < 0:
+            return -b / (2 * a)
+        r = np.array([(-b + math.sqrt(disc)) / (2 * a), (-b - math.sqrt(disc)) / (2 * a)])
+        return float(r[np.argmin(np.abs(r - target / b))])
+
+    def section_box(self, d: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bounding box of the plane section {w·u = d} of the workspace in c coordinates."""
+        V = self.vertices
+        vals = V @ self.w - d
+        pts = [V[vals == 0.0]]
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        cross = (vals[i] * vals[j]) < 0
+        if np.any(cross):
+            a, b = vals[i[cross]], vals[j[cross]]
+            lam = (a / (a - b))[:, None]
+            pts.append(V[i[cross]] + lam * (V[j[cross]] - V[i[cross]]))
+        P = np.vstack(pts)
+        if P.shape[0] == 0:
+            return None
+        C = (P / self.D) @ self.N
+        return C.min(axis=0), C.max(axis=0)
+
+    def grid(self, target: float, n: int, margin: float = 0.02) -> tuple[np.ndarray, tuple[int, ...]]:
+        """Grid of u on the AFM plane section for ``target``.
+
+        Returns
+        -------
+        U : ndarray, shape (n**(n_p-1), n_p)
+            Grid points (row-major over the null axes), possibly outside the workspace.
+        shape : tuple of int
+            The grid's shape (for neighbour tests).
+        """
+        d = self.d_of_target(target)
+        r = self.N.shape[1]
+        v0 = self.v_hat * d / self.wt_norm
+        if r == 0:
+            return (self.D * v0)[None, :], (1,)
+        box = self.section_box(d)
+        if box is None:
+            # beyond the AFM's range: grid the nearest section (Newton decides reachability)
+            ends = self.vertices @ self.w
+            box = self.section_box(float(np.clip(d, ends.min(), ends.max())))
+        lo, hi = box
+        pad = margin * np.maximum(hi - lo, 1e-9)
+        axes = [np.linspace(a - p, b + p, n) for a, b, p in zip(lo, hi, pad)]
+        C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, r)
+        V = v0[None, :] + C @ self.N.T
+        return V * self.D, tuple([n] * r)
+
+
+def _grid_local_minima(obj: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Indices of grid points not larger than any finite neighbour (inf = infeasible)."""
+    J = obj.reshape(shape)
+    padded = np.pad(J, 1, constant_values=np.inf)
+    is_min = np.isfinite(J)
+    r = len(shape)
+    for off in itertools.product((-1, 0, 1), repeat=r):
+        if not any(off):
+            continue
+        sl = tuple(slice(1 + o, 1 + o + s) for o, s in zip(off, shape))
+        is_min &= J <= padded[sl]
+    return np.flatnonzero(is_min.ravel())
+
+
+# --------------------------------------------------------------------------- base
+
+
+class _BaseController:
+    """Shared machinery: state parsing, range checks, IPOPT call and result assembly."""
+
+    name = "base"
+
+    def __init__(self, afm: AnalyticForwardModel, settings: ControllerSettings | None):
+        self.afm = afm
+        self.settings = settings or ControllerSettings()
+        self.n_builds = 0  # how many NLP solvers this controller has built (test: once)
+
+    def _state(self, state: np.ndarray | None) -> np.ndarray:
+        if state is None:
+            return self.afm.zero_state()
+        s = np.asarray(state, dtype=float).ravel()
+        if s.shape != (self.afm.n_s,) or not np.all(np.isfinite(s)):
+            raise ConfigError(f"state must be {self.afm.n_s} finite numbers "
+                              f"({', '.join(self.afm.state_names)}), got {np.asarray(state).tolist()}")
+        return s
+
+    def _in_range(self, u: np.ndarray) -> bool:
+        q = self.afm.K @ u
+        tol = self.settings.range_tol
+        return bool(np.all(q >= self.afm.lo - tol) and np.all(q <= self.afm.hi + tol))
+
+    def _q(self, u: np.ndarray) -> np.ndarray:
+        return np.clip(self.afm.K @ u, self.afm.lo, self.afm.hi)
+
+    @staticmethod
+    def _run(solver: ca.Function, x0: np.ndarray, p: np.ndarray, lbx, ubx, lbg, ubg) -> tuple[np.ndarray, dict]:
+        sol = solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        st = solver.stats()
+        return np.array(sol["x"]).ravel(), {"status": st.get("return_status", "unknown"),
+                                             "iter": int(st.get("iter_count", 0)),
+                                             "success": bool(st.get("success", False))}
+
+
+# --------------------------------------------------------------------------- EAFM controllers
+
+
+class _EAFMController(_BaseController):
+    """Controllers whose constraint is the EAFM mean (eq. 4's equality constraint)."""
+
+    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None):
+        super().__init__(eafm.afm, settings)
+        self.eafm = eafm
+        self.rset = RedundantSet(eafm.afm)
+        self._solver: ca.Function | None = None
+        self._range_solver: ca.Function | None = None
+        self._last_attempts: dict = {"status": [], "iter": 0, "n": 0}
+        self._build()
+
+    # ---- objective hooks (subclasses) ----------------------------------------------
+    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
+        raise NotImplementedError
+
+    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _needs(self) -> tuple[str, ...]:
+        return ("t_mean",)
+
+    # ---- NLP -------------------------------------------------------------------------
+    def _build(self) -> None:
+        """Build the IPOPT solver once: x = u, p = [t_d; s; J_ref] (eq. 4)."""
+        afm = self.afm
+        u = ca.MX.sym("u", afm.n_p)
+        s = ca.MX.sym("s", afm.n_s)
+        td = ca.MX.sym("t_d")
+        jref = ca.MX.sym("J_ref")
+        e = self.eafm.expressions(s, u, self._needs())
+        J = self._objective_mx(s, u, e)
+        g = ca.vertcat(e["t_mean"] - td, ca.mtimes(ca.DM(afm.K), u))  # eq. 4 constraint; lo <= K u <= hi
+        nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
+        self._solver = ca.nlpsol(f"{self.name}_ipopt", "ipopt", nlp, _ipopt_options(self.settings))
+        self._lbg = np.concatenate([[0.0], afm.lo])
+        self._ubg = np.concatenate([[0.0], afm.hi])
+        self.n_builds += 1
+
+    def _range_nlp(self) -> ca.Function:
+        if self._range_solver is None:
+            afm = self.afm
+            u = ca.MX.sym("u", afm.n_p)
+            s = ca.MX.sym("s", afm.n_s)
+            sign = ca.MX.sym("sign")
+            t = self.eafm.expressions(s, u, ("t_mean",))["t_mean"]
+            nlp = {"x": u, "p": ca.vertcat(s, sign), "f": sign * t, "g": ca.mtimes(ca.DM(afm.K), u)}
+            self._range_solver = ca.nlpsol(f"{self.name}_range", "ipopt", nlp, _ipopt_options(self.settings))
+        return self._range_solver
+
+    def reachable_interval(self, state: np.ndarray | None = None) -> tuple[float, float]:
+        """Interval of EAFM-mean tool poses reachable from ``state`` over the workspace (µm)."""
+        s = self._state(state)
+        V = self.rset.vertices
+        tv, _ = self.eafm.mean_and_grad_u(s, V)
+        out = []
+        for sign in (1.0, -1.0):
+            best = float(np.min(sign * tv))
+            x0 = V[np.argmin(sign * tv)] * 0.999  # just inside (the origin is interior for Table I)
+            x0 = x0 if self.afm.workspace.contains(x0) else V[np.argmin(sign * tv)]
+            x, st = self._run(self._range_nlp(), x0, np.concatenate([s, [sign]]),
+                              self.afm.workspace.u_lo, self.afm.workspace.u_hi, self.afm.lo, self.afm.hi)
+            if st["success"] and self._in_range(x):
+                best = min(best, float(sign * self.eafm.mean_and_grad_u(s, x[None, :])[0][0]))
+            out.append(sign * best)
+        return out[0], out[1]
+
+    # ---- seeding ---------------------------------------------------------------------
+    def _newton(self, s: np.ndarray, U: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+        """Move each row of U along w onto t_mean(s, u) = target; return U and |residual|."""
+        dirn = self.rset.dir_u
+        U = U.copy()
+        for _ in range(self.settings.newton_steps):
+            t, dt = self.eafm.mean_and_grad_u(s, U)
+            slope = dt @ dirn
+            slope = np.where(np.abs(slope) > 1e-12, slope, 1e-12)
+            U += ((target - t) / slope)[:, None] * dirn[None, :]
+        t, _ = self.eafm.mean_and_grad_u(s, U)
+        return U, np.abs(t - target)
+
+    def _seeds(self, s: np.ndarray, target: float, grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Feasible seeds on the redundant set, their objective and the grid-local-minimum order."""
+        U, shape = self.rset.grid(target, grid)
+        # drop points far outside the workspace before the GP work (Newton moves along w only slightly)
+        q = U @ self.afm.K.T
+        span = self.afm.hi - self.afm.lo
+        near = np.all((q >= self.afm.lo - 0.05 * span) & (q <= self.afm.hi + 0.05 * span), axis=1)
+        obj = np.full(U.shape[0], np.inf)
+        Un = U.copy()
+        if np.any(near):
+            Un[near], res = self._newton(s, U[near], target)
+            qn = Un[near] @ self.afm.K.T
+            feas = (res <= 1e-6 * max(1.0, abs(target))) & np.all(
+                (qn >= self.afm.lo) & (qn <= self.afm.hi), axis=1)
+            idx = np.flatnonzero(near)[feas]
+            if idx.size:
+                obj[idx] = self._objective_np(s, Un[idx])
+        mins = _grid_local_minima(obj, shape)
+        mins = mins[np.argsort(obj[mins])]
+        return Un, obj, mins
+
+    # ---- solve -----------------------------------------------------------------------
+    def solve(self, target_um: float, state: np.ndarray | None = None, *,
+              u_init: np.ndarray | None = None) -> ControlResult:
+        """Control signal for ``target_um`` from ``state`` (default zero state).
+
+        Parameters
+        ----------
+        target_um : float
+        state : ndarray, shape (n_s,), optional
+        u_init : ndarray, shape (n_p,), optional
+            Warm start (e.g. the previous solution along a target sequence); it is moved onto
+            the new target's surface and polished besides the global seeds.
+
+        Raises
+        ------
+        SolveError
+            Unreachable target (message gives the reachable interval from ``state``), or
+            no command passing the checks.
+        """
+        with _SingleThreadBLAS():
+            return self._solve(target_um, state, u_init, time.perf_counter())
+
+    def _solve(self, target_um: float, state: np.ndarray | None, u_init: np.ndarray | None,
+               t0: float) -> ControlResult:
+        cfg = self.settings
+        s = self._state(state)
+        target = float(target_um)
+        if not math.isfinite(target):
+            raise ConfigError(f"target must be a finite number of µm, got {target_um!r}")
+        U, obj, mins = self._seeds(s, target, cfg.grid)
+        starts: list[np.ndarray] = []
+        if u_init is not None:
+            uw, rw = self._newton(s, np.asarray(u_init, dtype=float).reshape(1, -1), target)
+            if self._in_range(uw[0]):
+                starts.append(uw[0])
+        if mins.size == 0 and not starts:
+            lo, hi = self.reachable_interval(s)
+            if not (lo - cfg.constraint_tol <= target <= hi + cfg.constraint_tol):
+                raise SolveError(f"target {target:g} µm is unreachable from state "
+                                 f"[{', '.join(f'{v:g}' for v in s)}]: the EAFM reaches [{lo:.6g}, {hi:.6g}] µm")
+            # reachable but the grid missed the thin section: a dense retry
+            U, obj, mins = self._seeds(s, target, 4 * cfg.grid)
+        best_seed = float(obj[mins[0]]) if mins.size else math.inf
+        for i in mins[: cfg.n_polish]:
+            if obj[i] <= cfg.polish_ratio * best_seed or not starts:
+                starts.append(U[i])
+        result = self._polish(s, target, starts, t0)
+        if result is None and mins.size > cfg.n_polish:
+            # cold retry from the remaining grid minima
+            result = self._polish(s, target, [U[i] for i in mins[cfg.n_polish: 3 * cfg.n_polish]], t0,
+                                  prior=self._last_attempts)
+        if result is not None:
+            return result
+        # IPOPT failed everywhere: the best seed that passes the checks (after a Newton
+        # refinement), never a command outside the ranges or off the target
+        status = "; ".join(sorted(set(self._last_attempts["status"]))) or "no start"
+        feas = np.flatnonzero(np.isfinite(obj))
+        for i in feas[np.argsort(obj[feas])][: 3 * cfg.n_polish]:
+            u = self._refine(s, U[i], target)
+            if u is not None:
+                return self._result(s, target, u, f"{status}; fallback to seed", False, t0)
+        raise SolveError(f"no valid control signal for target {target:g} µm (IPOPT: {status})")
+
+    def _polish(self, s: np.ndarray, target: float, starts: list[np.ndarray], t0: float,
+                prior: dict | None = None) -> ControlResult | None:
+        attempts = {"status": list(prior["status"]) if prior else [], "iter": prior["iter"] if prior else 0,
+                    "n": prior["n"] if prior else 0}
+        best: tuple[float, np.ndarray, str] | None = None
+        for u0 in starts:
+            jref = float(self._objective_np(s, u0[None, :])[0])
+            jref = jref if jref > 1e-300 else 1.0
+            x, st = self._run(self._solver, u0, np.concatenate([[target], s, [jref]]),
+                              self.afm.workspace.u_lo, self.afm.workspace.u_hi, self._lbg, self._ubg)
+            attempts["status"].append(st["status"])
+            attempts["iter"] += st["iter"]
+            attempts["n"] += 1
+            if not st["success"]:
+                continue
+            x = self._refine(s, x, target)
+            if x is None:
+                continue
+            j = float(self._objective_np(s, x[None, :])[0])
+            if best is None or j < best[0]:
+                best = (j, x, st["status"])
+        self._last_attempts = attempts
+        if best is None:
+            return None
+        return self._result(s, target, best[1], best[2], True, t0)
+
+    def _refine(self, s: np.ndarray, u: np.ndarray, target: float) -> np.ndarray | None:
+        """Check (and if needed Newton-correct along w) the constraint residual and ranges."""
+        t, _ = self.eafm.mean_and_grad_u(s, u[None, :])
+        if abs(t[0] - target) > self.settings.constraint_tol:
+            U, res = self._newton(s, u[None, :], target)
+            if res[0] > self.settings.constraint_tol:
+                return None
+            u = U[0]
+        return u if self._in_range(u) else None
+
+    def _result(self, s: np.ndarray, target: float, u: np.ndarray, status: str, success: bool,
+                t0: float) -> ControlResult:
+        p = self.eafm.predict(s, u)
+        a = self._last_attempts
+        return ControlResult(
+            controller=self.name, target_um=target, state=s.copy(), u=u.copy(), q=self._q(u),
+            predicted_um=float(p.t_mean[0]), predicted_std_um=float(math.sqrt(p.t_var[0])),
+            objective=float(self._objective_np(s, u[None, :])[0]), status=status,
+            iterations=int(a.get("iter", 0)), solve_time_s=time.perf_counter() - t0, success=success,
+            constraint_residual=float(abs(p.t_mean[0] - target)), n_starts=int(a.get("n", 0)),
+        )
+
+    def solve_sequence(self, targets: list[float], states: list[np.ndarray] | None = None) -> list[ControlResult]:
+        """Solve a target sequence, warm-starting each from the previous solution.
+
+        Parameters
+        ----------
+        targets : list of float
+        states : list of ndarray, optional
+            State before each move (default: the zero state, then the predicted state
+            ``[predicted_um; q]`` of the previous command).
+        """
+        out: list[ControlResult] = []
+        prev_u = None
+        s = self.afm.zero_state()
+        for k, tgt in enumerate(targets):
+            if states is not None:
+                s = np.asarray(states[k], dtype=float)
+            r = self.solve(tgt, s, u_init=prev_u)
+            out.append(r)
+            prev_u = r.u
+            s = np.concatenate([[r.predicted_um], r.q])
+        return out
+
+
+class OptimalController(_EAFMController):
+    """The EAFM optimal controller of eq. 4 (see the module docstring).
+
+    Parameters
+    ----------
+    eafm : EAFM
+    settings : ControllerSettings, optional
+    """
+
+    name = "eafm"
+
+    def _needs(self) -> tuple[str, ...]:
+        r = self.settings.r_e
+        return ("t_mean", "g_mean") + (("g_var",) if r != "noise_median" else ()) + (
+            ("f_var",) if r == "noise_mean_plus_epistemic" else ())
+
+    def _r_e_mx(self, e: dict) -> ca.MX:
+        r = self.settings.r_e
+        if r == "noise_median":
+            return ca.exp(e["g_mean"])
+        re = ca.exp(e["g_mean"] + 0.5 * e["g_var"])
+        return re + e["f_var"] if r == "noise_mean_plus_epistemic" else re
+
+    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
+        return -ca.expm1(-self._r_e_mx(e))  # eq. 4: 1 - exp(-r_e)
+
+    def r_e_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """r_e (µm²) at the rows of U, shape (m,)."""
+        if self.settings.r_e == "noise_median":
+            return np.exp(self.eafm.g_mean_np(s, U))  # O(m n): no triangular solve
+        p = self.eafm.predict(s, U)
+        re = np.exp(p.g_mean + 0.5 * p.g_var)
+        return re + p.f_var if self.settings.r_e == "noise_mean_plus_epistemic" else re
+
+    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return -np.expm1(-self.r_e_np(s, U))
+
+
+class EAFMMeanController(_EAFMController):
+    """EAFM-mean baseline: ``min ||K u - q_prev||^2`` s.t. EAFM mean = target, in range.
+
+    Parameters
+    ----------
+    eafm : EAFM
+    settings : ControllerSettings, optional
+    """
+
+    name = "eafm_mean"
+
+    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
+        return ca.sumsqr(ca.mtimes(ca.DM(self.afm.K), u) - s[1:])
+
+    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return np.sum((U @ self.afm.K.T - s[None, 1:]) ** 2, axis=1)
+
+
+# --------------------------------------------------------------------------- AFM baseline
+
+
+class AFMController(_BaseController):
+    """AFM baseline: smallest actuator motion ``min ||K u - q_prev||^2`` s.t. AFM t(u) = target.
+
+    The AFM tool map is linear up to the sensor polynomial, so the constraint is the plane
+    ``w·u = d`` with d the inverted gauge reading: a convex QP, solved by IPOPT from the
+    unconstrained minimiser (one start).
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    settings : ControllerSettings, optional
+    reporter : EAFM, optional
+        When given, ``predicted_um`` / ``predicted_std_um`` of the result are the EAFM's at
+        the AFM command (what the AFM command is expected to do); otherwise AFM t(u) and NaN.
+    """
+
+    name = "afm"
+
+    def __init__(self, afm: AnalyticForwardModel, settings: ControllerSettings | None = None,
+                 reporter: EAFM | None = None):
+        super().__init__(afm, settings)
+        self.reporter = reporter
+        self.rset = RedundantSet(afm)
+        self._t_range = afm.t_range()  # the AFM is absolute: the same from every state
+        u = ca.MX.sym("u", afm.n_p)
+        p = ca.MX.sym("p", 1 + afm.n_q)  # [d; q_prev]
+        Ku = ca.mtimes(ca.DM(afm.K), u)
+        scale = float(np.mean((afm.hi - afm.lo) ** 2))
+        nlp = {"x": u, "p": p, "f": ca.sumsqr(Ku - p[1:]) / scale,
+               "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
+        self._solver = ca.nlpsol("afm_ipopt", "ipopt", nlp, _ipopt_options(self.settings))
+        self.n_builds += 1
+
+    def solve(self, target_um: float, state: np.ndarray | None = None, *,
+              u_init: np.ndarray | None = None) -> ControlResult:
+        """AFM command for ``target_um`` from ``state`` (``u_init`` is ignored: convex)."""
+        t0 = time.perf_counter()
+        s = self._state(state)
+        target = float(target_um)
+        lo, hi = self._t_range
+        if not (lo - self.settings.constraint_tol <= target <= hi + self.settings.constraint_tol):
+            raise SolveError(f"target {target:g} µm is unreachable from state "
+                             f"[{', '.join(f'{v:g}' for v in s)}]: the AFM reaches [{lo:.6g}, {hi:.6g}] µm")
+        d = self.rset.d_of_target(target)
+        K, w, qp = self.afm.K, self.afm.w_pred, s[1:]
+        # unconstrained-in-range minimiser of ||K u - q_prev||^2 on the plane w·u = d (KKT system)
+        n = K.shape[1]
+        kkt = np.block([[2 * K.T @ K, w[:, None]], [w[None, :], np.zeros((1, 1))]])
+        u0 = np.linalg.solve(kkt, np.concatenate([2 * K.T @ qp, [d]]))[:n]
+        x, st = self._run(self._solver, u0, np.concatenate([[d], qp]), self.afm.workspace.u_lo,
+                          self.afm.workspace.u_hi, np.concatenate([[0.0], self.afm.lo]),
+                          np.concatenate([[0.0], self.afm.hi]))
+        ok = st["success"] and self._in_range(x) and abs(float(self.afm.t_of(x)) - target) <= self.settings.constraint_tol
+        status = st["status"]
+        if not ok:
+            if self._in_range(u0) and abs(float(self.afm.t_of(u0)) - target) <= self.settings.constraint_tol:
+                x, status = u0, f"{status}; fallback to seed"
+            else:
+                raise SolveError(f"AFM controller: no valid control signal for target {target:g} µm (IPOPT: {status})")
+        if self.reporter is not None:
+            p = self.reporter.predict(s, x)
+            pred, std = float(p.t_mean[0]), float(math.sqrt(p.t_var[0]))
+        else:
+            pred, std = float(self.afm.t_of(x)), float("nan")
+        return ControlResult(
+            controller=self.name, target_um=target, state=s.copy(), u=x.copy(), q=self._q(x), predicted_um=pred,
+            predicted_std_um=std, objective=float(np.sum((K @ x - qp) ** 2)), status=status,
+            iterations=st["iter"], solve_time_s=time.perf_counter() - t0, success=bool(ok),
+            constraint_residual=float(abs(float(self.afm.t_of(x)) - target)), n_starts=1,
+        )
+

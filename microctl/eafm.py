@@ -1,0 +1,313 @@
+"""The enhanced analytic forward model (EAFM) of the paper, eq. 1 and 3, as CasADi graphs.
+
+The EAFM adds a heteroscedastic GP (VHGPR, :mod:`microctl.vhgpr`) trained on the AFM
+residual ``y = t' - T_t f_a(s, u)`` with input ``x = [s; u]`` (eq. 3) to the AFM
+(:mod:`microctl.afm`, eq. 14):
+
+    t' ~ N( T_t f_a(s, u) + g_e(s, u),  r_e(s, u) )                                   (eq. 1)
+
+with ``g_e`` the GP mean of f and ``r_e = exp(g)`` the input-dependent noise variance. This
+module builds, from an :class:`~microctl.afm.AnalyticForwardModel` and a
+:class:`~microctl.vhgpr.FittedVHGPR`:
+
+- :attr:`EAFM.function`, one named CasADi Function ``eafm(s, u) -> (t_mean, f_mean, f_var,
+  g_mean, g_var, q)`` (MX graph; exact first and second derivatives by CasADi's AD);
+- :meth:`EAFM.expressions`, the same quantities as separate MX expressions of given
+  symbols, so that an NLP pulls in only what its objective needs (the O(n^2) epistemic
+  terms are never evaluated by an NLP that does not use them);
+- :meth:`EAFM.predict`, the NumPy reference (``FittedVHGPR.predict`` + AFM);
+- vectorised NumPy helpers for the controller's global seeding
+  (:meth:`EAFM.mean_and_grad_u`, :meth:`EAFM.g_mean_np`).
+
+Graph design (measurements in ``docs/controller.md``): MX, not SX; the mean terms are
+``k^T alpha`` with ``k`` built from one dense (n x d) product; the variance terms are
+``k** - ||L^-1 k||^2`` with ``L^-1`` a constant lower-triangular (sparse) DM.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sps
+
+from microctl.afm import AnalyticForwardModel
+from microctl.errors import ConfigError
+from microctl.vhgpr import FittedVHGPR
+
+__all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
+
+
+def load_residual_model(path: str | Path) -> FittedVHGPR:
+    """Read a residual model file (``.npz`` written by :meth:`FittedVHGPR.save`)."""
+    return FittedVHGPR.load(path)
+
+
+def bind_to_stage(model: FittedVHGPR, afm: AnalyticForwardModel) -> FittedVHGPR:
+    """Return ``model`` with ``geometry_hash`` and ``x_names`` of the AFM's stage (eq. 3 input)."""
+    names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
+    return replace(model, geometry_hash=afm.stage.geometry_hash(), x_names=names, y_name="residual_um")
+
+
+@dataclass(frozen=True)
+class EAFMPrediction:
+    """NumPy EAFM prediction at m points (µm, µm²).
+
+    Attributes
+    ----------
+    t_mean : ndarray, shape (m,)
+        AFM tool pose + GP mean (eq. 1).
+    f_mean, f_var : ndarray, shape (m,)
+        GP residual mean and epistemic variance.
+    g_mean, g_var : ndarray, shape (m,)
+        Mean and variance of the log noise variance ``g`` (µm² in the log).
+    t_var : ndarray, shape (m,)
+        Predictive variance ``f_var + exp(g_mean + g_var/2)``.
+    q : ndarray, shape (m, n_q)
+        Actuator commands ``K u`` (eq. 12).
+    """
+
+    t_mean: np.ndarray
+    f_mean: np.ndarray
+    f_var: np.ndarray
+    g_mean: np.ndarray
+    g_var: np.ndarray
+    t_var: np.ndarray
+    q: np.ndarray
+
+
+class _Kernel:
+    """Constant pieces of one ARD-SE kernel against the training inputs (standardised units)."""
+
+    def __init__(self, X: np.ndarray, log_ls: np.ndarray, log_sf2: float, log_b: float | None):
+        self.inv_ls = np.exp(-np.asarray(log_ls, dtype=float))
+        self.Z = X * self.inv_ls  # (n, d)
+        self.ZZ = np.einsum("ij,ij->i", self.Z, self.Z)  # (n,)
+        self.sf2 = math.exp(log_sf2)
+        self.bias = math.exp(log_b) if log_b is not None else 0.0
+        self.kss = self.sf2 + self.bias  # k(x, x)
+
+    # -- CasADi --------------------------------------------------------------------
+    def mx(self, xs: ca.MX) -> ca.MX:
+        """k(x*, X) as an (n, 1) MX column; ``xs`` standardised input (d, 1)."""
+        z = xs * ca.DM(self.inv_ls)
+        d2 = ca.DM(self.ZZ) + ca.sumsqr(z) - 2.0 * ca.mtimes(ca.DM(self.Z), z)
+        k = self.sf2 * ca.exp(-0.5 * d2)
+        return k + self.bias if self.bias else k
+
+    # -- NumPy ---------------------------------------------------------------------
+    def se(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """SE part of k(x*, X), shape (m, n), and the scaled inputs z, shape (m, d)."""
+        z = xs * self.inv_ls
+        d2 = np.einsum("ij,ij->i", z, z)[:, None] + self.ZZ[None, :] - 2.0 * (z @ self.Z.T)
+        np.maximum(d2, 0.0, out=d2)
+        return self.sf2 * np.exp(-0.5 * d2), z
+
+
+def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
+    """L^-1 of a lower Cholesky factor as a sparse (lower-triangular) DM."""
+    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+    return ca.DM(sps.csc_matrix(np.tril(Linv)))
+
+
+class EAFM:
+    """The EAFM of eq. 1 built from an AFM and a fitted residual VHGPR.
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    model : FittedVHGPR or str or Path
+        The residual model (or its ``.npz`` file), trained with ``x = [s; u]`` (eq. 3).
+    check_geometry : bool
+        Refuse a model whose ``geometry_hash`` differs from ``afm.stage.geometry_hash()``
+        (default True). A model with no geometry hash is refused too.
+
+    Raises
+    ------
+    ConfigError
+        Geometry-hash mismatch or wrong input dimension, naming the model file.
+
+    Attributes
+    ----------
+    function : casadi.Function
+        ``eafm(s, u) -> (t_mean, f_mean, f_var, g_mean, g_var, q)``; s shape (n_s, 1),
+        u shape (n_p, 1); every output (1, 1) except q (n_q, 1). Built lazily.
+    """
+
+    def __init__(self, afm: AnalyticForwardModel, model: FittedVHGPR | str | Path, *, check_geometry: bool = True):
+        source = "<in-memory model>"
+        if not isinstance(model, FittedVHGPR):
+            source = str(model)
+            model = load_residual_model(model)
+        self.afm = afm
+        self.model = model
+        self.source = source
+        self.n_p, self.n_q, self.n_s = afm.n_p, afm.n_q, afm.n_s
+        self.n_x = self.n_s + self.n_p
+        if check_geometry:
+            want = afm.stage.geometry_hash()
+            if model.geometry_hash is None:
+                raise ConfigError(f"{source}: the residual model is not bound to a stage geometry "
+                                  f"(no geometry_hash); train it with `microctl train` for this stage")
+            if model.geometry_hash != want:
+                raise ConfigError(f"{source}: the residual model was trained for another stage geometry "
+                                  f"(geometry_hash {model.geometry_hash[:12]}… ≠ {want[:12]}… of stage "
+                                  f"'{afm.stage.name}'); retrain it for this stage")
+        if model.n_inputs != self.n_x:
+            raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
+                              f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
+        self._kf = _Kernel(model.X, model.f_log_lengthscales, model.f_log_signal_var, model.f_log_bias_var)
+        self._kg = _Kernel(model.X, model.g_log_lengthscales, model.g_log_signal_var, model.g_log_bias_var)
+        self._x_mean = np.asarray(model.x_mean, dtype=float)
+        self._x_scale = np.asarray(model.x_scale, dtype=float)
+        self._log_y2 = 2.0 * math.log(model.y_scale)
+        self._Lf_inv: ca.DM | None = None
+        self._Lg_inv: ca.DM | None = None
+        self._function: ca.Function | None = None
+
+    @property
+    def function(self) -> ca.Function:
+        """``eafm(s, u) -> (t_mean, f_mean, f_var, g_mean, g_var, q)``, built on first use.
+
+        Building the variance branches costs O(n^2) memory and time (seconds at n = 2000),
+        which a controller using only the mean and g_mean never pays.
+        """
+        if self._function is None:
+            s = ca.MX.sym("s", self.n_s)
+            u = ca.MX.sym("u", self.n_p)
+            e = self.expressions(s, u)
+            names = ["t_mean", "f_mean", "f_var", "g_mean", "g_var", "q"]
+            self._function = ca.Function("eafm", [s, u], [e[k] for k in names], ["s", "u"], names)
+        return self._function
+
+    @classmethod
+    def from_file(cls, afm: AnalyticForwardModel, path: str | Path, **kw: Any) -> "EAFM":
+        """Build from a model file (see the class parameters)."""
+        return cls(afm, path, **kw)
+
+    @property
+    def n_train(self) -> int:
+        """Number of training points n of the residual GP."""
+        return int(self.model.X.shape[0])
+
+    # ---- CasADi ------------------------------------------------------------------
+    def _lf_inv(self) -> ca.DM:
+        if self._Lf_inv is None:
+            self._Lf_inv = _tril_inverse_dm(self.model.f_chol)
+        return self._Lf_inv
+
+    def _lg_inv(self) -> ca.DM:
+        if self._Lg_inv is None:
+            self._Lg_inv = _tril_inverse_dm(self.model.g_chol)
+        return self._Lg_inv
+
+    def expressions(self, s: ca.MX, u: ca.MX, which: tuple[str, ...] | None = None) -> dict[str, ca.MX]:
+        """EAFM quantities as MX expressions of the symbols ``s`` (n_s, 1) and ``u`` (n_p, 1).
+
+        Parameters
+        ----------
+        s, u : casadi.MX
+        which : tuple of str, optional
+            Subset of ``("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")`` to
+            build (default all). Only the requested branches enter the graph.
+
+        Returns
+        -------
+        dict of str to casadi.MX
+        """
+        allq = ("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")
+        which = allq if which is None else tuple(which)
+        m = self.model
+        out: dict[str, ca.MX] = {}
+        x = ca.vertcat(s, u)  # eq. 3: x = [s; u]
+        xs = (x - ca.DM(self._x_mean)) / ca.DM(self._x_scale)
+        t_afm, q = self.afm.f_a(s, u)  # eq. 14
+        need_f = any(k in which for k in ("t_mean", "f_mean", "f_var"))
+        need_g = any(k in which for k in ("g_mean", "g_var"))
+        kf = self._kf.mx(xs) if need_f else None
+        kg = self._kg.mx(xs) if need_g else None
+        if "t_mean" in which or "f_mean" in which:
+            a = ca.dot(kf, ca.DM(np.asarray(m.f_alpha)))
+            if m.mean_coef is not None:
+                a = a + ca.dot(xs, ca.DM(np.asarray(m.mean_coef)))  # linear prior mean of the GP
+            f_mean = m.y_mean + m.y_scale * a  # GP mean g_e
+            out["f_mean"] = f_mean
+            out["t_mean"] = t_afm + f_mean  # eq. 1: T_t (f_a + g_e)
+        if "f_var" in which:
+            # epistemic variance  y_scale^2 (k** - ||L_f^-1 k||^2)  [notes/vhgpr.md prediction]
+            out["f_var"] = m.y_scale**2 * (self._kf.kss - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
+        if "g_mean" in which:
+            out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + m.g_mu0 + self._log_y2
+        if "g_var" in which:
+            out["g_var"] = self._kg.kss - ca.sumsqr(ca.mtimes(self._lg_inv(), kg))
+        if "q" in which:
+            out["q"] = q
+        if "t_afm" in which:
+            out["t_afm"] = t_afm
+        return {k: out[k] for k in which}
+
+    # ---- NumPy reference -----------------------------------------------------------
+    def _x(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        s = np.atleast_2d(np.asarray(s, dtype=float))
+        s = np.broadcast_to(s, (u.shape[0], self.n_s)) if s.shape[0] == 1 else s
+        return np.hstack([s, u])
+
+    def predict(self, s: np.ndarray, u: np.ndarray) -> EAFMPrediction:
+        """Reference prediction with :meth:`FittedVHGPR.predict` and the AFM (eq. 1).
+
+        Parameters
+        ----------
+        s : ndarray, shape (n_s,) or (m, n_s)
+        u : ndarray, shape (n_p,) or (m, n_p)
+        """
+        X = self._x(s, u)
+        p = self.model.predict(X)
+        U = X[:, self.n_s:]
+        t_mean = np.asarray(self.afm.t_of(U)) + p.f_mean
+        return EAFMPrediction(t_mean=t_mean, f_mean=p.f_mean, f_var=p.f_var, g_mean=p.g_mean,
+                              g_var=p.g_var, t_var=p.y_var, q=self.afm.q_of(U))
+
+    def mean_and_grad_u(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """EAFM mean t_mean and its gradient in u at many u (vectorised, for seeding).
+
+        Parameters
+        ----------
+        s : ndarray, shape (n_s,)
+        U : ndarray, shape (m, n_p)
+
+        Returns
+        -------
+        t_mean : ndarray, shape (m,)
+        dt_du : ndarray, shape (m, n_p)
+        """
+        X = self._x(s, U)
+        xs = (X - self._x_mean) / self._x_scale
+        Kse, z = self._kf.se(xs)
+        A = Kse * np.asarray(self.model.f_alpha)[None, :]
+        a = A.sum(axis=1)
+        f = self.model.y_mean + self.model.y_scale * (a + self._kf.bias * float(np.sum(self.model.f_alpha)))
+        # d k_i / d z = -k_i^se (z - Z_i)  ->  d f / d x = -y_scale (a z - A Z) / (l x_scale)
+        dz = -(a[:, None] * z - A @ self._kf.Z)
+        dx = self.model.y_scale * dz * self._kf.inv_ls / self._x_scale
+        if self.model.mean_coef is not None:  # linear prior mean
+            coef = np.asarray(self.model.mean_coef)
+            f = f + self.model.y_scale * (xs @ coef)
+            dx = dx + self.model.y_scale * coef[None, :] / self._x_scale
+        d = U @ self.afm.w_pred
+        t = self.afm.scale * d + self.afm.quad * d * d + f
+        dt = (self.afm.scale + 2.0 * self.afm.quad * d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
+        return t, dt
+
+    def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """Mean of the log noise variance at many u (O(m n), vectorised), shape (m,)."""
+        X = self._x(s, U)
+        xs = (X - self._x_mean) / self._x_scale
+        Kse, _ = self._kg.se(xs)
+        beta = np.asarray(self.model.g_beta)
+        return Kse @ beta + self._kg.bias * float(beta.sum()) + self.model.g_mu0 + self._log_y2

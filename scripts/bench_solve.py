@@ -1,0 +1,221 @@
+#!/usr/bin/env python
+"""Benchmark the EAFM optimal controller (eq. 4) against single-start solvers.
+
+For each size n of the residual training set: synthetic residual data over the Table I
+workspace with a planted heteroscedastic noise (three low-noise wells in (rx, ry) plus a
+z trend, so the problem has several local optima per target), seeded; a residual model
+(``--fit fixed``: the planted noise with fixed hyperparameters, no fit, seconds; ``--fit
+vhgpr``: a VHGPR fit with a wall-time budget); then per target (random target and random
+state):
+
+- ``microctl``: the whole :meth:`OptimalController.solve` call (global seeding + IPOPT);
+- ``ipopt-1start``: the same IPOPT NLP from one cold start (the AFM smallest-motion command);
+- ``slsqp``, ``trust-constr``: scipy.optimize.minimize on the same problem from the same
+  start, objective/constraint gradients from the same CasADi graphs;
+- ``dense-grid``: a 101 x 101 grid over the redundant set, Newton-projected (no polish).
+
+Reported per method: solve time (median, min, max), IPOPT/scipy iterations, success rate
+(converged, constraint residual <= 1e-8 µm, actuators in range) and the share of targets on
+which the method reaches the best objective found by any method (relative 1e-5).
+
+Usage: ``python scripts/bench_solve.py [--sizes 125,500,2000] [--targets 50] [--seed 0]``.
+Nothing is cached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+from scipy.optimize import Bounds, LinearConstraint, NonlinearConstraint, minimize
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from microctl.afm import AnalyticForwardModel  # noqa: E402
+from microctl.config import load_stage_config  # noqa: E402
+from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
+from microctl.eafm import EAFM, bind_to_stage  # noqa: E402
+from microctl.training import fixed_hyperparameter_model  # noqa: E402
+from microctl.vhgpr import VHGPR  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+WELLS = [((0.5, -0.3), 2.0), ((-0.4, 0.2), 1.6), ((0.1, 0.6), 1.2)]  # ((rx, ry) mrad, depth in log var)
+REACH_REL = 1e-5
+
+
+def planted_data(afm, n, rng):
+    """Training inputs [s; u], residuals and the planted log noise variance."""
+    U = afm.workspace.sample(n, rng)
+    S = np.column_stack([rng.uniform(0, 30, n), rng.uniform(0, 32, (n, afm.n_q))])
+    ln = np.full(n, np.log(0.15**2)) + 0.02 * U[:, 0]
+    for (cx, cy), depth in WELLS:
+        ln -= depth * np.exp(-((U[:, 1] - cx) ** 2 + (U[:, 2] - cy) ** 2) / (2 * 0.2**2))
+    y = 0.3 * np.sin(U[:, 0] / 8) + 0.2 * U[:, 1] - 0.1 * U[:, 2] + np.exp(ln / 2) * rng.standard_normal(n)
+    return np.hstack([S, U]), y, ln
+
+
+def build_model(afm, n, seed, fit, fit_time):
+    rng = np.random.default_rng(seed)
+    X, y, ln = planted_data(afm, n, rng)
+    t0 = time.perf_counter()
+    if fit == "fixed":
+        m = fixed_hyperparameter_model(X, y, ln, f_log_lengthscales=np.array([3.0, 3, 3, 3, 3, 0.0, -0.7, -0.7]))
+    else:
+        m = VHGPR(n_restarts=1, random_state=seed, max_time=fit_time).fit(X, y)
+    return bind_to_stage(m, afm), time.perf_counter() - t0
+
+
+class ScipyProblem:
+    """The eq. 4 problem for scipy, values and gradients from the controller's CasADi graphs."""
+
+    def __init__(self, ctl: OptimalController):
+        afm = ctl.afm
+        s = ca.MX.sym("s", afm.n_s)
+        u = ca.MX.sym("u", afm.n_p)
+        e = ctl.eafm.expressions(s, u, ctl._needs())
+        J = ctl._objective_mx(s, u, e)
+        self.fJ = ca.Function("obj", [s, u], [J, ca.gradient(J, u)])
+        self.fc = ca.Function("con", [s, u], [e["t_mean"], ca.gradient(e["t_mean"], u)])
+        self.afm = afm
+
+    def run(self, method, s, target, u0):
+        jref = float(self.fJ(s, u0)[0]) or 1.0
+
+        def f(u):
+            v, g = self.fJ(s, u)
+            return float(v) / jref, np.array(g).ravel() / jref
+
+        def c(u):
+            return float(self.fc(s, u)[0]) - target
+
+        def cj(u):
+            return np.array(self.fc(s, u)[1]).ravel()
+
+        ws = self.afm.workspace
+        if method == "slsqp":
+            cons = [{"type": "eq", "fun": c, "jac": lambda u: cj(u)[None, :]},
+                    {"type": "ineq", "fun": lambda u: self.afm.K @ u - self.afm.lo, "jac": lambda u: self.afm.K},
+                    {"type": "ineq", "fun": lambda u: self.afm.hi - self.afm.K @ u, "jac": lambda u: -self.afm.K}]
+            r = minimize(f, u0, jac=True, method="SLSQP", constraints=cons, bounds=list(zip(ws.u_lo, ws.u_hi)),
+                         options={"maxiter": 200, "ftol": 1e-12})
+        else:
+            cons = [NonlinearConstraint(c, 0.0, 0.0, jac=lambda u: cj(u)[None, :]),
+                    LinearConstraint(self.afm.K, self.afm.lo, self.afm.hi)]
+            r = minimize(f, u0, jac=True, method="trust-constr", constraints=cons, bounds=Bounds(ws.u_lo, ws.u_hi),
+                         options={"maxiter": 500, "gtol": 1e-10, "xtol": 1e-12})
+        return r.x, bool(r.success), int(getattr(r, "nit", 0))
+
+
+def bench_size(afm, n, args):
+    model, fit_s = build_model(afm, n, args.seed, args.fit, args.fit_time)
+    eafm = EAFM(afm, model)
+    t0 = time.perf_counter()
+    ctl = OptimalController(eafm, ControllerSettings())
+    build_s = time.perf_counter() - t0
+    base = AFMController(afm)
+    sp = ScipyProblem(ctl)
+    rng = np.random.default_rng(args.seed + 1)
+    lo, hi = afm.t_range()
+    span = hi - lo
+    targets = rng.uniform(lo + 0.05 * span, hi - 0.05 * span, args.targets)
+    states = np.column_stack([rng.uniform(0, 30, args.targets), rng.uniform(0, 32, (args.targets, afm.n_q))])
+    methods = ["microctl", "ipopt-1start", "slsqp", "trust-constr", "dense-grid"]
+    rec = {m: {"t": [], "it": [], "ok": [], "obj": []} for m in methods}
+
+    def valid(s, u, target):
+        if u is None or not np.all(np.isfinite(u)):
+            return False
+        q = afm.K @ u
+        t = eafm.predict(s, u).t_mean[0]
+        return bool(abs(t - target) <= 1e-8 and np.all(q >= afm.lo - 1e-9) and np.all(q <= afm.hi + 1e-9))
+
+    def objective(s, u):
+        return float(ctl._objective_np(s, u[None, :])[0])
+
+    ctl.solve(float(targets[0]), states[0])  # warm the caches (first-call overheads) outside the timing
+    for k, (target, s) in enumerate(zip(targets, states)):
+        u0 = base.solve(target, s).u
+        # microctl
+        t1 = time.perf_counter()
+        r = ctl.solve(target, s)
+        dt = time.perf_counter() - t1
+        ok = r.success and valid(s, r.u, target)
+        rec["microctl"]["t"].append(dt); rec["microctl"]["it"].append(r.iterations)
+        rec["microctl"]["ok"].append(ok); rec["microctl"]["obj"].append(objective(s, r.u) if ok else np.inf)
+        # one cold IPOPT start on the same NLP
+        jref = objective(s, u0) or 1.0
+        t1 = time.perf_counter()
+        x, st = ctl._run(ctl._solver, u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
+                         afm.workspace.u_hi, ctl._lbg, ctl._ubg)
+        dt = time.perf_counter() - t1
+        ok = st["success"] and valid(s, x, target)
+        rec["ipopt-1start"]["t"].append(dt); rec["ipopt-1start"]["it"].append(st["iter"])
+        rec["ipopt-1start"]["ok"].append(ok); rec["ipopt-1start"]["obj"].append(objective(s, x) if ok else np.inf)
+        for m in ("slsqp", "trust-constr"):
+            t1 = time.perf_counter()
+            x, succ, nit = sp.run(m, s, target, u0)
+            dt = time.perf_counter() - t1
+            ok = succ and valid(s, x, target)
+            rec[m]["t"].append(dt); rec[m]["it"].append(nit); rec[m]["ok"].append(ok)
+            rec[m]["obj"].append(objective(s, x) if ok else np.inf)
+        t1 = time.perf_counter()
+        U, obj, _ = ctl._seeds(s, target, args.grid)
+        dt = time.perf_counter() - t1
+        good = [i for i in np.flatnonzero(np.isfinite(obj)) if valid(s, U[i], target)]
+        best_grid = min((obj[i] for i in good), default=np.inf)
+        rec["dense-grid"]["t"].append(dt); rec["dense-grid"]["it"].append(0)
+        rec["dense-grid"]["ok"].append(bool(good)); rec["dense-grid"]["obj"].append(best_grid)
+        if not args.quiet:
+            print(f"\r  n={n}: target {k + 1}/{args.targets}", end="", file=sys.stderr, flush=True)
+    if not args.quiet:
+        print(file=sys.stderr)
+    objs = np.array([rec[m]["obj"] for m in methods])
+    best = objs.min(axis=0)
+    rows = []
+    for i, m in enumerate(methods):
+        t = np.array(rec[m]["t"]) * 1e3
+        reached = objs[i] <= best * (1 + REACH_REL) + 1e-300
+        rows.append((n, m, np.median(t), t.min(), t.max(), np.median(rec[m]["it"]), 100 * np.mean(rec[m]["ok"]),
+                     100 * np.mean(reached)))
+    return rows, fit_s, build_s
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="125,500,2000", help="comma-separated training-set sizes")
+    p.add_argument("--targets", type=int, default=50, help="targets per size (>= 50 for the report)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--grid", type=int, default=101, help="dense-grid points per null-space axis")
+    p.add_argument("--fit", choices=("fixed", "vhgpr"), default="fixed",
+                   help="residual model: planted noise with fixed hyperparameters, or a VHGPR fit")
+    p.add_argument("--fit-time", type=float, default=300.0, help="VHGPR fit budget per size (s)")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    warnings.filterwarnings("ignore", category=UserWarning, module="scipy")
+    afm = AnalyticForwardModel(load_stage_config(ROOT / "configs/stage/table1.yaml").stage)
+    sizes = [int(v) for v in args.sizes.split(",")]
+    print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
+          f"cpus={os.cpu_count()}, python {platform.python_version()}, casadi {ca.__version__}")
+    print(f"targets per size: {args.targets}, seed {args.seed}, model: {args.fit}, "
+          f"reach = objective within {REACH_REL:g} (relative) of the best of all methods")
+    all_rows = []
+    for n in sizes:
+        rows, fit_s, build_s = bench_size(afm, n, args)
+        print(f"n={n}: model {fit_s:.1f} s, controller build {build_s * 1e3:.0f} ms")
+        all_rows += rows
+    print()
+    print(f"{'n':>5} {'method':>13} {'median ms':>10} {'min ms':>8} {'max ms':>9} {'iter':>5} {'success %':>9} "
+          f"{'best %':>7}")
+    for r in all_rows:
+        print(f"{r[0]:5d} {r[1]:>13} {r[2]:10.2f} {r[3]:8.2f} {r[4]:9.2f} {r[5]:5.0f} {r[6]:9.0f} {r[7]:7.0f}")
+
+
+if __name__ == "__main__":
+    main()
