@@ -127,9 +127,26 @@ def test_sim_paper_afm_controller_statistics():
                 var_still[j] = sim.true_var(np.zeros(5), u_still)
             sse[k, j] = target - sim.move(u).t_um
     msse, vsse = sse.mean(axis=0), sse.var(axis=0, ddof=1)
-    print("MSSE", np.round(msse, 2), "VSSE", np.round(vsse, 2), "var AFM", np.round(var_afm, 2),
-          "var q4 still", np.round(var_still, 3))
-    assert np.all((msse > 0.3) & (msse < 6.0))
-    assert msse[-1] > msse[0] + 2.0  # the bias grows with the target
-    assert np.all((vsse > 0.3) & (vsse < 8.0))
-    assert np.all(var_afm >= 2 * var_still)  # an optimal controller can gain >= 2x
+    print("MSSE", np.round(msse, 2), "VSSE", np.round(vsse, 4), "var AFM", np.round(var_afm, 4),
+          "var q4 still", np.round(var_still, 4))
+    # Bias: the AFM controller moves q3 and q4 together by ~T/2.82 each; PZT4's 40 % deficit,
+    # shared elastically, costs 0.4 * 1.206 µm of t per µm of q4 (w K^+ e4 = 1.206): ~0.17 T.
+    np.testing.assert_allclose(msse, 0.17 * np.array(targets), rtol=0.15)
+    # Scatter: stick-slip 0.1 µm/µm on a ~2.5 µm step of q4, times 1.206, plus the gauge's
+    # 0.05 µm: true variance ~0.03 µm²; a 10-trial sample variance lies within a factor ~3.
+    assert np.all((var_afm > 0.02) & (var_afm < 0.05))
+    assert np.all((vsse > 0.01) & (vsse < 0.1))
+    assert np.all(var_afm >= 5 * var_still)  # an optimal controller can gain >= 5x
+
+
+def test_sim_paper_keeps_every_ball_loaded():
+    """sim_paper is a well-preloaded rig: its defects are shared elastically, no ball lifts off
+    anywhere in the workspace (lift-off is the contact_loss cause, which it does not have)."""
+    from microctl.physics import actual_positions, contact_model, equilibrium
+
+    cfg = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
+    afm = AnalyticForwardModel(cfg.stage)
+    q = afm.q_of(afm.workspace.sample(3000, np.random.default_rng(0)))
+    model = contact_model(cfg.stage, cfg.backend.simulated.effects)
+    _, active = equilibrium(model, None, actual_positions(model, q))
+    assert np.all(active)
