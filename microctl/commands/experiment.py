@@ -1,0 +1,45 @@
+"""``microctl experiment``: the paper's absolute- and incremental-movement experiments (section IV)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from microctl.commands._common import add_quiet
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``experiment`` sub-command."""
+    p = subparsers.add_parser(
+        "experiment",
+        help="the absolute- and incremental-movement experiments (collect, train, run AFM and EAFM controllers, "
+        "statistics, figures, report)",
+        description="Run an experiment file: collect the training moves and fit the residual VHGPR (eq. 3), run the "
+        "absolute-movement (IV-C) and incremental-movement (IV-D) experiments with the AFM, EAFM (and, on a "
+        "simulated stage, oracle) controllers, and write results.json, report.md, config.yaml, the measurement "
+        "logs, the model and figures into --out.",
+    )
+    p.add_argument("experiment", metavar="EXPERIMENT.yaml", help="experiment file (see docs/experiments.md)")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output folder (default: results/<experiment name> in the current folder)")
+    add_quiet(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from microctl.experiments.config import load_experiment_config
+    from microctl.experiments.runner import run_experiment
+
+    cfg = load_experiment_config(args.experiment)  # everything validated before any move
+    out = Path(args.out) if args.out else Path("results") / Path(args.experiment).stem
+    res = run_experiment(cfg, out, quiet=args.quiet)
+    if not args.quiet:
+        inc = res.get("incremental")
+        if inc is not None:
+            print(f"{'':8s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]), file=sys.stderr)
+            for name, c in inc["controllers"].items():
+                print(f"{name:6s}MSSE" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
+                print(f"{name:6s}VSSE" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
+        print(f"experiment: results in {out} ({res['timings_s']['total']:.1f} s)", file=sys.stderr)
+    return 0

@@ -1,0 +1,460 @@
+"""Experiment YAML → frozen dataclasses, validated before any move is made.
+
+An experiment file names the stage config (a path relative to the experiment file), the
+seeds, the training (paper IV-A: 125 moves), the controllers compared and which experiments
+to run (absolute movement IV-C, incremental movement IV-D). Every problem is a
+:class:`~microctl.errors.ConfigError` naming the file and the field path
+(``incremental.targets_um[2]``); unknown keys are rejected at every level. The stage config
+is loaded (and so validated) here too, so that a bad field anywhere fails before the
+backend is opened. See ``docs/experiments.md`` for the reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from microctl.config import StageConfig, load_stage_config, load_yaml
+from microctl.controller import R_E_SETTINGS, ControllerSettings
+from microctl.errors import ConfigError
+
+#: Controllers an experiment can compare.
+CONTROLLERS = ("afm", "eafm", "oracle")
+
+#: Training move designs (see :mod:`microctl.experiments.design`).
+DESIGNS = ("space_filling", "from_zero", "face_episodes")
+
+
+@dataclass(frozen=True)
+class Seeds:
+    """Seeds of every random choice (same file + same seeds → same results).
+
+    Attributes
+    ----------
+    design : int
+        Training move design.
+    gp : int
+        VHGPR restarts.
+    training_stage : int
+        Simulated stage during training (first round; refinement round r uses ``+ r``).
+    absolute_points : int
+        The 30 control signals of the absolute experiment.
+    absolute_stage : int
+        Simulated stage of absolute trial k: ``absolute_stage + k``.
+    incremental_stage : int
+        Simulated stage of incremental trial k: ``incremental_stage + k``, the same for every
+        controller (common random numbers).
+    refine_targets : int
+        Targets of the refinement episodes.
+    """
+
+    design: int = 0
+    gp: int = 0
+    training_stage: int = 1
+    absolute_points: int = 2
+    absolute_stage: int = 100
+    incremental_stage: int = 1000
+    refine_targets: int = 3
+
+
+@dataclass(frozen=True)
+class Training:
+    """Training of the residual VHGPR (paper IV-A, eq. 3).
+
+    Attributes
+    ----------
+    moves : int
+        Moves of the initial design (the paper: 125).
+    design : str
+        One of :data:`DESIGNS`.
+    episode_moves : int
+        Moves per episode of the ``face_episodes`` design (after its return to the zero state).
+    restarts : int
+        VHGPR optimisation runs.
+    max_iter : int
+        L-BFGS-B iterations per run.
+    refine_rounds : int
+        On-policy refinement rounds after the first fit (0: none): each runs incremental
+        episodes with the EAFM controller, logs them as training moves and refits.
+    refine_moves : int
+        Moves per refinement round.
+    refine_episode_targets : int
+        Targets per refinement episode (each episode starts with a return to the zero state).
+    refine_target_range_um : tuple of 2 float or None
+        Range the refinement targets are drawn from (default: the AFM's reachable range).
+    gp_mean : str
+        Prior mean of the residual GP: ``"constant"`` or ``"linear"`` (see
+        :class:`microctl.vhgpr.VHGPR`).
+    """
+
+    moves: int = 125
+    design: str = "space_filling"
+    episode_moves: int = 4
+    restarts: int = 2
+    max_iter: int = 500
+    refine_rounds: int = 0
+    refine_moves: int = 40
+    refine_episode_targets: int = 4
+    refine_target_range_um: tuple[float, float] | None = None
+    gp_mean: str = "constant"
+
+
+@dataclass(frozen=True)
+class Oracle:
+    """Settings of the oracle controller (:mod:`microctl.experiments.oracle`).
+
+    Attributes
+    ----------
+    grid : int
+        Grid points per null-space axis of the redundant set.
+    line_points : int
+        Points on each "actuator still" line (where the variance has its kinks).
+    zooms : int
+        Grid refinements around the best candidate.
+    newton_steps : int
+        Newton steps moving candidates onto the true-mean surface.
+    """
+
+    grid: int = 31
+    line_points: int = 61
+    zooms: int = 2
+    newton_steps: int = 6
+
+
+@dataclass(frozen=True)
+class Absolute:
+    """The absolute movement experiment (paper IV-C).
+
+    Attributes
+    ----------
+    enabled : bool
+    points : int
+        Control signals covering the workspace (the paper: 30).
+    trials : int
+        Trials per point (the paper: 2).
+    """
+
+    enabled: bool = True
+    points: int = 30
+    trials: int = 2
+
+
+@dataclass(frozen=True)
+class Incremental:
+    """The incremental movement experiment (paper IV-D).
+
+    Attributes
+    ----------
+    enabled : bool
+    targets_um : tuple of float
+        Reached in sequence from the zero state (the paper: 7, 14, 21, 28 µm).
+    trials : int
+        The paper: 10. Each trial starts by returning to the zero state.
+    """
+
+    enabled: bool = True
+    targets_um: tuple[float, ...] = (7.0, 14.0, 21.0, 28.0)
+    trials: int = 10
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """A whole experiment file, resolved.
+
+    Attributes
+    ----------
+    source : str
+        The experiment file (for messages).
+    stage_path : Path
+        The stage config, resolved against the experiment file's folder.
+    stage_config : StageConfig
+        The loaded (validated) stage config.
+    emulate : bool
+        Serve the stage in-process (:class:`~microctl.emulator.Emulator`) and drive it through
+        the serial backend (needs ``backend.serial`` in the stage config).
+    controllers : tuple of str
+        Controllers compared, a subset of :data:`CONTROLLERS` (``afm`` and ``eafm`` required).
+    seeds : Seeds
+    training : Training
+    controller : ControllerSettings
+        Settings of the AFM and EAFM controllers.
+    oracle : Oracle
+    absolute : Absolute
+    incremental : Incremental
+    figures : bool
+        Write PNG figures when matplotlib is available.
+    """
+
+    source: str
+    stage_path: Path
+    stage_config: StageConfig
+    emulate: bool = False
+    controllers: tuple[str, ...] = CONTROLLERS
+    seeds: Seeds = field(default_factory=Seeds)
+    training: Training = field(default_factory=Training)
+    controller: ControllerSettings = field(default_factory=ControllerSettings)
+    oracle: Oracle = field(default_factory=Oracle)
+    absolute: Absolute = field(default_factory=Absolute)
+    incremental: Incremental = field(default_factory=Incremental)
+    figures: bool = True
+
+    @property
+    def simulated(self) -> bool:
+        """Whether the stage is simulated in-process (a simulated backend or the emulator)."""
+        return self.stage_config.backend.kind == "simulated" or self.emulate
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved experiment as plain data (the YAML form, stage path absolute)."""
+        tr = asdict(self.training)
+        if tr["refine_target_range_um"] is not None:
+            tr["refine_target_range_um"] = list(tr["refine_target_range_um"])
+        inc = asdict(self.incremental)
+        inc["targets_um"] = list(inc["targets_um"])
+        return {
+            "stage": str(self.stage_path),
+            "emulate": self.emulate,
+            "controllers": list(self.controllers),
+            "seeds": asdict(self.seeds),
+            "training": tr,
+            "controller": asdict(self.controller),
+            "oracle": asdict(self.oracle),
+            "absolute": asdict(self.absolute),
+            "incremental": inc,
+            "figures": self.figures,
+        }
+
+
+# --------------------------------------------------------------------------------------
+# validation
+# --------------------------------------------------------------------------------------
+
+
+class _Checker:
+    """Typed field access with messages naming the file and the field path."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, path: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {path}: {message}")
+
+    def mapping(self, value: Any, path: str, allowed: Iterable[str], required: Iterable[str] = ()) -> dict:
+        allowed = list(allowed)
+        if value is None:
+            value = {}
+        if not isinstance(value, Mapping):
+            raise self.fail(path, f"expected a mapping with keys {', '.join(allowed)}, got {type(value).__name__}")
+        for key in value:
+            if key not in allowed:
+                raise self.fail(f"{path}.{key}" if path else str(key),
+                                f"unknown key '{key}'; valid keys here: {', '.join(allowed)}")
+        for key in required:
+            if key not in value:
+                raise self.fail(f"{path}.{key}" if path else str(key), "is required")
+        return dict(value)
+
+    def integer(self, value: Any, path: str, lo: int | None = None, hi: int | None = None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {value!r}")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+            raise self.fail(path, f"must be an integer {rng}, got {value!r}")
+        return int(value)
+
+    def number(self, value: Any, path: str, *, positive: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+            raise self.fail(path, f"expected a finite number, got {value!r}")
+        if positive and value <= 0:
+            raise self.fail(path, f"must be > 0, got {value!r}")
+        return float(value)
+
+    def boolean(self, value: Any, path: str) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(path, f"expected true or false, got {value!r}")
+        return value
+
+    def choice(self, value: Any, path: str, choices: Iterable[str]) -> str:
+        choices = tuple(choices)
+        if not isinstance(value, str) or value not in choices:
+            raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
+        return value
+
+    def numbers(self, value: Any, path: str, n: int | None = None) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)) or not value or (n is not None and len(value) != n):
+            want = f"a list of {n} numbers" if n is not None else "a non-empty list of numbers"
+            raise self.fail(path, f"expected {want}, got {value!r}")
+        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+
+def _section(ck: _Checker, raw: Mapping, name: str, cls: type, ints: dict, **kw) -> Any:
+    """Parse a section whose fields are all integers (given as name -> minimum)."""
+    d = cls()
+    sec = ck.mapping(raw.get(name), name, list(ints) + list(kw))
+    vals = {k: ck.integer(sec.get(k, getattr(d, k)), f"{name}.{k}", lo=lo) for k, lo in ints.items()}
+    for k, parse in kw.items():
+        vals[k] = parse(sec.get(k, getattr(d, k)), f"{name}.{k}")
+    return cls(**vals)
+
+
+def parse_experiment_config(data: Any, source: str, base_dir: Path) -> ExperimentConfig:
+    """Validate an already-parsed experiment document.
+
+    Parameters
+    ----------
+    data : mapping
+        The YAML document.
+    source : str
+        Name used in messages (the file).
+    base_dir : Path
+        Folder relative paths are resolved against (the experiment file's).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the field path; also any error of the stage config it names.
+    """
+    ck = _Checker(source)
+    top = ck.mapping(
+        data, "",
+        ["stage", "emulate", "controllers", "seeds", "training", "controller", "oracle", "absolute",
+         "incremental", "figures"],
+        required=["stage"],
+    )
+    stage_raw = top["stage"]
+    if not isinstance(stage_raw, str) or not stage_raw.strip():
+        raise ck.fail("stage", f"expected the path of a stage config, got {stage_raw!r}")
+    stage_path = Path(stage_raw)
+    if not stage_path.is_absolute():
+        stage_path = (base_dir / stage_path).resolve()
+    if not stage_path.is_file():
+        raise ck.fail("stage", f"stage config '{stage_raw}' not found (looked for {stage_path})")
+    stage_config = load_stage_config(stage_path)
+    emulate = ck.boolean(top.get("emulate", False), "emulate")
+
+    ctrl_raw = top.get("controllers", list(CONTROLLERS))
+    if not isinstance(ctrl_raw, list) or not ctrl_raw:
+        raise ck.fail("controllers", f"expected a list of controllers from {', '.join(CONTROLLERS)}, got {ctrl_raw!r}")
+    controllers = tuple(ck.choice(c, f"controllers[{i}]", CONTROLLERS) for i, c in enumerate(ctrl_raw))
+    if len(set(controllers)) != len(controllers):
+        raise ck.fail("controllers", f"lists a controller twice: {list(controllers)}")
+    for need in ("afm", "eafm"):
+        if need not in controllers:
+            raise ck.fail("controllers", f"must include '{need}' (the paper compares AFM and EAFM)")
+    backend = stage_config.backend
+    if emulate and backend.serial is None:
+        raise ck.fail("emulate", f"needs a stage config with backend.serial (the devices to emulate); "
+                                 f"{stage_path} has none")
+    simulated = backend.kind == "simulated" or emulate
+    if "oracle" in controllers and not simulated:
+        raise ck.fail("controllers", "'oracle' needs the simulator's true mean and variance: use a simulated "
+                                     "stage (backend.kind: simulated) or emulate: true")
+
+    seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
+
+    tr = ck.mapping(top.get("training"), "training", list(Training.__dataclass_fields__))
+    dt = Training()
+    rng_raw = tr.get("refine_target_range_um", None)
+    rng = None
+    if rng_raw is not None:
+        rng = ck.numbers(rng_raw, "training.refine_target_range_um", 2)
+        if rng[0] >= rng[1]:
+            raise ck.fail("training.refine_target_range_um", f"lower bound {rng[0]:g} must be below {rng[1]:g}")
+    training = Training(
+        moves=ck.integer(tr.get("moves", dt.moves), "training.moves", lo=5),
+        design=ck.choice(tr.get("design", dt.design), "training.design", DESIGNS),
+        episode_moves=ck.integer(tr.get("episode_moves", dt.episode_moves), "training.episode_moves", lo=1),
+        restarts=ck.integer(tr.get("restarts", dt.restarts), "training.restarts", lo=1),
+        max_iter=ck.integer(tr.get("max_iter", dt.max_iter), "training.max_iter", lo=1),
+        refine_rounds=ck.integer(tr.get("refine_rounds", dt.refine_rounds), "training.refine_rounds", lo=0),
+        refine_moves=ck.integer(tr.get("refine_moves", dt.refine_moves), "training.refine_moves", lo=1),
+        refine_episode_targets=ck.integer(tr.get("refine_episode_targets", dt.refine_episode_targets),
+                                          "training.refine_episode_targets", lo=1),
+        refine_target_range_um=rng,
+        gp_mean=ck.choice(tr.get("gp_mean", dt.gp_mean), "training.gp_mean", ("constant", "linear")),
+    )
+
+    cs_fields = ["r_e", "grid", "newton_steps", "n_polish", "polish_ratio", "constraint_tol", "ipopt_tol",
+                 "max_iter"]
+    cs = ck.mapping(top.get("controller"), "controller", cs_fields)
+    dc = ControllerSettings()
+    try:
+        controller = ControllerSettings(
+            r_e=ck.choice(cs.get("r_e", dc.r_e), "controller.r_e", R_E_SETTINGS),
+            grid=ck.integer(cs.get("grid", dc.grid), "controller.grid", lo=2),
+            newton_steps=ck.integer(cs.get("newton_steps", dc.newton_steps), "controller.newton_steps", lo=1),
+            n_polish=ck.integer(cs.get("n_polish", dc.n_polish), "controller.n_polish", lo=1),
+            polish_ratio=ck.number(cs.get("polish_ratio", dc.polish_ratio), "controller.polish_ratio"),
+            constraint_tol=ck.number(cs.get("constraint_tol", dc.constraint_tol), "controller.constraint_tol",
+                                     positive=True),
+            ipopt_tol=ck.number(cs.get("ipopt_tol", dc.ipopt_tol), "controller.ipopt_tol", positive=True),
+            max_iter=ck.integer(cs.get("max_iter", dc.max_iter), "controller.max_iter", lo=1),
+        )
+    except ConfigError as exc:
+        if str(exc).startswith(source):
+            raise
+        raise ConfigError(f"{source}: controller: {exc}") from None
+
+    oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1})
+
+    ab = ck.mapping(top.get("absolute"), "absolute", ["enabled", "points", "trials"])
+    da = Absolute()
+    absolute = Absolute(
+        enabled=ck.boolean(ab.get("enabled", da.enabled), "absolute.enabled"),
+        points=ck.integer(ab.get("points", da.points), "absolute.points", lo=2),
+        trials=ck.integer(ab.get("trials", da.trials), "absolute.trials", lo=1),
+    )
+
+    inc = ck.mapping(top.get("incremental"), "incremental", ["enabled", "targets_um", "trials"])
+    di = Incremental()
+    incremental = Incremental(
+        enabled=ck.boolean(inc.get("enabled", di.enabled), "incremental.enabled"),
+        targets_um=ck.numbers(inc.get("targets_um", list(di.targets_um)), "incremental.targets_um"),
+        trials=ck.integer(inc.get("trials", di.trials), "incremental.trials", lo=2),
+    )
+    if not absolute.enabled and not incremental.enabled:
+        raise ck.fail("incremental.enabled", "both experiments are disabled; enable absolute or incremental")
+    if incremental.enabled:
+        _check_targets(ck, stage_config, incremental.targets_um)
+
+    return ExperimentConfig(
+        source=source, stage_path=stage_path, stage_config=stage_config, emulate=emulate,
+        controllers=controllers, seeds=seeds, training=training, controller=controller, oracle=oracle,
+        absolute=absolute, incremental=incremental,
+        figures=ck.boolean(top.get("figures", True), "figures"),
+    )
+
+
+def _check_targets(ck: _Checker, stage_config: StageConfig, targets: tuple[float, ...]) -> None:
+    """Every target inside the AFM's reachable range (checked before any move)."""
+    from microctl.afm import AnalyticForwardModel
+
+    lo, hi = AnalyticForwardModel(stage_config.stage).t_range()
+    for i, t in enumerate(targets):
+        if not lo <= t <= hi:
+            raise ck.fail(f"incremental.targets_um[{i}]",
+                          f"{t:g} µm is outside the stage's reachable range [{lo:.4g}, {hi:.4g}] µm")
+
+
+def load_experiment_config(path: str | Path) -> ExperimentConfig:
+    """Load and validate an experiment YAML file (and the stage config it names).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    ExperimentConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the field path.
+    """
+    path = Path(path)
+    data = load_yaml(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{path}: expected a YAML mapping with at least 'stage', got {type(data).__name__}")
+    return parse_experiment_config(data, str(path), path.resolve().parent)

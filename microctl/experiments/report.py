@@ -1,0 +1,278 @@
+"""Statistics of the experiments (paper IV-B), results.json and report.md.
+
+Incremental movement (IV-D): e_s = t_d − t_f per trial and target; MSSE (mean) and VSSE
+(sample variance, ddof 1) per target and controller (Table II); the paper's Student
+two-sample t-tests on the per-target |MSSE| and VSSE values of AFM vs EAFM; per target the
+Brown–Forsythe test of equal SSE variances (robust to the heavy-tailed stick-slip scatter,
+unlike the F-test; :mod:`microctl.stats`) and Welch's t-test on |e_s|.
+
+Absolute movement (IV-C): PE = |t' − prediction| per move for AFM and EAFM (eq. of IV-B.1),
+averaged over the trials per point; the paper's two-sample t-test plus the paired t-test and
+Wilcoxon signed-rank test (the same moves are predicted by both models); the fraction of
+measurements inside the EAFM's ±2σ band.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from microctl import stats
+from microctl.commands._common import to_jsonable, write_json
+from microctl.experiments.config import ExperimentConfig
+
+#: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
+PAPER_TABLE_II = {
+    "targets_um": [7.0, 14.0, 21.0, 28.0],
+    "msse_um": {"afm": [1.2, 3.1, 3.0, 5.2], "eafm": [0.3, 0.7, 0.6, 0.9]},
+    "vsse_um2": {"afm": [0.3, 3.1, 4.5, 8.0], "eafm": [0.14, 0.15, 0.5, 3.5]},
+    "p_value": {"msse": 0.01, "vsse": 0.07, "absolute_pe": 1e-6},
+}
+
+
+def write_config(path: Path, cfg: ExperimentConfig) -> None:
+    """``config.yaml``: the resolved experiment and the stage config (for reproduction)."""
+    doc = {"experiment": cfg.to_dict(), "stage_config": cfg.stage_config.to_dict()}
+    Path(path).write_text(yaml.safe_dump(to_jsonable(doc), sort_keys=False))
+
+
+def _test(fn, *args) -> dict | None:
+    """A test's dict, or None when it is undefined (e.g. zero variance, too few values)."""
+    try:
+        with np.errstate(all="ignore"):
+            r = fn(*args)
+    except (ValueError, ZeroDivisionError, FloatingPointError):
+        return None
+    d = r.to_dict()
+    return d if math.isfinite(d["p_value"]) else {**d, "p_value": None}
+
+
+def incremental_stats(inc: dict) -> dict:
+    """Table II and the tests from the incremental run (see the module docstring)."""
+    targets = np.asarray(inc["targets_um"], dtype=float)
+    ctrls: dict[str, Any] = {}
+    sse: dict[str, np.ndarray] = {}
+    for name, r in inc["controllers"].items():
+        e = stats.steady_state_errors(targets[None, :], r["reached_um"])  # (trials, targets)
+        sse[name] = e
+        c = {
+            "msse_um": stats.msse(e), "vsse_um2": stats.vsse(e), "msse_stderr_um": stats.msse_stderr(e),
+            "sse_um": e, "reached_um": r["reached_um"], "predicted_um": r["predicted_um"],
+            "predicted_std_um": r["predicted_std_um"], "q_um": r["q_um"],
+            "solve_time_s": {"mean": float(np.nanmean(r["solve_time_s"])), "max": float(np.nanmax(r["solve_time_s"]))},
+            "fallbacks_to_afm": int(r["fallbacks"]),
+        }
+        if np.any(np.isfinite(r["true_mean_um"])):
+            c["true_mean_um"] = r["true_mean_um"]
+            c["true_std_um"] = r["true_std_um"]
+            # the expected SSE of the commands actually sent (noise-free accuracy)
+            c["expected_msse_um"] = np.mean(targets[None, :] - r["true_mean_um"], axis=0)
+            c["expected_vsse_um2"] = np.mean(r["true_std_um"] ** 2, axis=0)
+        ctrls[name] = c
+    a, e = ctrls["afm"], ctrls["eafm"]
+    t_msse = _test(stats.two_sample_t, np.abs(a["msse_um"]), np.abs(e["msse_um"]))
+    t_vsse = _test(stats.two_sample_t, a["vsse_um2"], e["vsse_um2"])
+    per_target = []
+    for j, t in enumerate(targets):
+        row: dict[str, Any] = {
+            "target_um": float(t),
+            "brown_forsythe_afm_vs_eafm": _test(stats.brown_forsythe, sse["afm"][:, j], sse["eafm"][:, j]),
+            "welch_abs_sse_afm_vs_eafm": _test(lambda x, y: stats.two_sample_t(x, y, equal_var=False),
+                                               np.abs(sse["afm"][:, j]), np.abs(sse["eafm"][:, j])),
+            "eafm_msse_within_2se": bool(abs(e["msse_um"][j]) < 2 * e["msse_stderr_um"][j]),
+        }
+        if "oracle" in sse:
+            row["brown_forsythe_oracle_vs_eafm"] = _test(stats.brown_forsythe, sse["oracle"][:, j], sse["eafm"][:, j])
+        per_target.append(row)
+    ratios = {
+        "msse_afm_over_eafm": np.abs(a["msse_um"]) / np.maximum(np.abs(e["msse_um"]), 1e-12),
+        "vsse_afm_over_eafm": a["vsse_um2"] / np.maximum(e["vsse_um2"], 1e-12),
+    }
+    if "oracle" in ctrls:
+        ratios["vsse_eafm_over_oracle"] = e["vsse_um2"] / np.maximum(ctrls["oracle"]["vsse_um2"], 1e-12)
+    return {
+        "targets_um": targets.tolist(),
+        "trials": int(inc["trials"]),
+        "controllers": ctrls,
+        "p_value": {"msse": None if t_msse is None else t_msse["p_value"],
+                    "vsse": None if t_vsse is None else t_vsse["p_value"]},
+        "tests": {"msse": t_msse, "vsse": t_vsse, "per_target": per_target,
+                  "msse_note": "Student two-sample t-test on the per-target |MSSE| of AFM vs EAFM (the paper's); "
+                               "p_value is two-sided, p_one_sided is for 'EAFM smaller'",
+                  "vsse_note": "Student two-sample t-test on the per-target VSSE of AFM vs EAFM (the paper's)"},
+        "ratios": ratios,
+        "paper_table_ii": PAPER_TABLE_II,
+    }
+
+
+def absolute_stats(ab: dict) -> dict:
+    """PE per point, the tests, and the 2σ coverage (see the module docstring)."""
+    meas = ab["measured_um"]  # (trials, points)
+    pe_afm_moves = np.abs(meas - ab["afm_um"][None, :])
+    pe_eafm_moves = np.abs(meas - ab["eafm_mean_um"])
+    pe_afm, pe_eafm = pe_afm_moves.mean(axis=0), pe_eafm_moves.mean(axis=0)
+    out: dict[str, Any] = {
+        "points": int(meas.shape[1]), "trials": int(meas.shape[0]),
+        "pe_um": {"afm": pe_afm, "eafm": pe_eafm},
+        "pe_per_move_um": {"afm": pe_afm_moves, "eafm": pe_eafm_moves},
+        "mean_pe_um": {"afm": float(pe_afm.mean()), "eafm": float(pe_eafm.mean())},
+        "eafm_below_afm_points": int(np.sum(pe_eafm < pe_afm)),
+        "u": ab["u"], "measured_um": meas, "afm_um": ab["afm_um"],
+        "eafm_mean_um": ab["eafm_mean_um"], "eafm_std_um": ab["eafm_std_um"],
+        "fraction_within_2sigma": stats.fraction_within(meas, ab["eafm_mean_um"], ab["eafm_std_um"], 2.0),
+        "fraction_within_1sigma": stats.fraction_within(meas, ab["eafm_mean_um"], ab["eafm_std_um"], 1.0),
+    }
+    t = _test(stats.two_sample_t, pe_afm, pe_eafm)
+    out["p_value"] = None if t is None else t["p_value"]
+    out["tests"] = {"two_sample_t": t, "paired_t": _test(stats.paired_t, pe_afm, pe_eafm),
+                    "wilcoxon": _test(stats.wilcoxon_signed_rank, pe_afm, pe_eafm)}
+    if np.any(np.isfinite(ab["true_mean_um"])):
+        # noise-free accuracy of the two means (simulator truth): model error without the gauge/friction scatter
+        tm = ab["true_mean_um"]
+        err_afm = np.abs(tm - ab["afm_um"][None, :]).mean(axis=0)
+        err_eafm = np.abs(tm - ab["eafm_mean_um"]).mean(axis=0)
+        out["mean_error_vs_truth_um"] = {"afm": err_afm, "eafm": err_eafm,
+                                         "eafm_below_afm_points": int(np.sum(err_eafm < err_afm))}
+        out["true_std_um"] = ab["true_std_um"]
+        out["tests"]["paired_t_mean_error_vs_truth"] = _test(stats.paired_t, err_afm, err_eafm)
+    return out
+
+
+def build_results(cfg: ExperimentConfig, train_info: dict, absolute: dict | None, incremental: dict | None,
+                  timings_s: dict, logs: dict) -> dict:
+    """The content of results.json (field names per shared/spec/cli.md, plus more)."""
+    res: dict[str, Any] = {
+        "experiment": cfg.source,
+        "stage": str(cfg.stage_path),
+        "backend": "emulated serial" if cfg.emulate else cfg.stage_config.backend.kind,
+        "common_random_numbers": cfg.stage_config.backend.kind == "simulated",
+        "training": train_info,
+        "timings_s": timings_s,
+        "logs": logs,
+        "model": "model.npz",
+    }
+    if incremental is not None:
+        res["incremental"] = incremental_stats(incremental)
+    if absolute is not None:
+        res["absolute"] = absolute_stats(absolute)
+    return to_jsonable(res)
+
+
+def _f(x: Any, nd: int = 3) -> str:
+    if x is None:
+        return "–"
+    x = float(x)
+    if not math.isfinite(x):
+        return "–"
+    if x != 0 and (abs(x) < 10 ** -nd or abs(x) >= 1e5):
+        return f"{x:.2e}"
+    return f"{x:.{nd}f}"
+
+
+def _p(t: dict | None) -> str:
+    if t is None or t.get("p_value") is None:
+        return "– (undefined)"
+    one = t.get("p_one_sided")
+    return f"p = {_f(t['p_value'], 4)} (two-sided), {_f(one, 4)} (one-sided, {t['alternative']})"
+
+
+def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
+    """report.md: Table II, the tests, the absolute experiment, timings and notes."""
+    L: list[str] = [f"# Experiment report: {Path(cfg.source).name}", ""]
+    L.append(f"Stage config: `{cfg.stage_path}` (backend: {results['backend']}). "
+             f"Training: design `{cfg.training.design}`, {results['training']['rows']} moves "
+             f"({cfg.training.moves} designed + {cfg.training.refine_rounds} on-policy refinement rounds), "
+             f"{cfg.training.restarts} VHGPR restarts; controller r_e = `{cfg.controller.r_e}`.")
+    L.append("")
+    if results["common_random_numbers"]:
+        L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "
+                 "seeded identically (incremental seed "
+                 f"{cfg.seeds.incremental_stage} + k), so all controllers met the same noise draws move by move; "
+                 "differences between controllers come from the controllers.")
+    else:
+        L.append("The stage could not be reseeded (serial backend): one stage served the whole run, so the "
+                 "controllers met different noise.")
+    L.append("")
+    inc = results.get("incremental")
+    if inc is not None:
+        T = inc["targets_um"]
+        L += ["## Incremental movement (IV-D): Table II", "",
+              f"{inc['trials']} trials; targets reached in sequence from the zero state; e_s = t_d − t_f.", ""]
+        head = "| metric | controller | " + " | ".join(f"{t:g} µm" for t in T) + " | unit |"
+        L += [head, "|" + "---|" * (len(T) + 3)]
+        for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
+                                  ("VSSE", "vsse_um2", "µm²")):
+            for name, c in inc["controllers"].items():
+                L.append(f"| {metric} | {name.upper() if name != 'oracle' else 'oracle'} | "
+                         + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
+        if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
+            for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
+                for name in ("afm", "eafm"):
+                    L.append(f"| {metric} (paper) | {name.upper()} | "
+                             + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
+        L.append("")
+        r = inc["ratios"]
+        L.append("Ratios: AFM/EAFM |MSSE| " + ", ".join(_f(v, 1) for v in r["msse_afm_over_eafm"])
+                 + "; AFM/EAFM VSSE " + ", ".join(_f(v, 1) for v in r["vsse_afm_over_eafm"])
+                 + ("; EAFM/oracle VSSE " + ", ".join(_f(v, 2) for v in r["vsse_eafm_over_oracle"])
+                    if "vsse_eafm_over_oracle" in r else "") + ".")
+        L += ["", "### Tests", "",
+              f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+              + _p(inc["tests"]["msse"]),
+              f"- VSSE, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+              + _p(inc["tests"]["vsse"]), "",
+              "Per target, the spread of the SSE is compared with the Brown–Forsythe test (Levene's test centred "
+              "on the median). The paper's t-test on the four VSSE values asks whether the *average* variance "
+              "differs across targets, with 3 + 3 degrees of freedom; whether one controller is more repeatable "
+              f"at a given target is a test of equal variances on the {inc['trials']} + {inc['trials']} SSE "
+              "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
+              "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
+              "Brown–Forsythe test is used.", "",
+              "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM abs(MSSE) < 2 SE |",
+              "|---|---|---|---|---|"]
+        for row in inc["tests"]["per_target"]:
+            bf = row["brown_forsythe_afm_vs_eafm"]
+            we = row["welch_abs_sse_afm_vs_eafm"]
+            bo = row.get("brown_forsythe_oracle_vs_eafm")
+            L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
+                     f"{_f(bo and bo['p_value'], 4)} | {'yes' if row['eafm_msse_within_2se'] else 'no'} |")
+        fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
+        if fb:
+            L += ["", f"Solver failures replaced by the AFM command: {fb}."]
+        L.append("")
+    ab = results.get("absolute")
+    if ab is not None:
+        L += ["## Absolute movement (IV-C)", "",
+              f"{ab['points']} control signals covering the workspace, each from the zero state "
+              f"(u0, u1, u0, u2, …), {ab['trials']} trials; PE = |t' − prediction| averaged over the trials.", "",
+              f"- mean PE: AFM {_f(ab['mean_pe_um']['afm'])} µm, EAFM {_f(ab['mean_pe_um']['eafm'])} µm; "
+              f"EAFM below AFM at {ab['eafm_below_afm_points']} of {ab['points']} points",
+              f"- measurements inside the EAFM's ±2σ band: {100 * ab['fraction_within_2sigma']:.1f} % "
+              f"(±1σ: {100 * ab['fraction_within_1sigma']:.1f} %)",
+              "- two-sample t-test (the paper's): " + _p(ab["tests"]["two_sample_t"]),
+              "- paired t-test: " + _p(ab["tests"]["paired_t"]),
+              "- Wilcoxon signed-rank test: " + _p(ab["tests"]["wilcoxon"])]
+        if "mean_error_vs_truth_um" in ab:
+            mt = ab["mean_error_vs_truth_um"]
+            L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
+                     f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
+                     f"{ab['points']} points")
+        L.append("")
+    tm = results["timings_s"]
+    L += ["## Timings", "", ", ".join(f"{k}: {v:.1f} s" for k, v in tm.items()), ""]
+    if results.get("figures"):
+        L += ["## Figures", ""] + [f"![{f}]({f})" for f in results["figures"]] + [""]
+    L += ["Logs (one row per move, written as it completed): "
+          + ", ".join(f"`{v}`" for v in results["logs"].values()) + "; model: `model.npz`; "
+          "resolved configs: `config.yaml`.", ""]
+    return "\n".join(L)
+
+
+def write_outputs(out: Path, cfg: ExperimentConfig, results: dict) -> None:
+    """Write results.json and report.md into ``out``."""
+    write_json(Path(out) / "results.json", results)
+    (Path(out) / "report.md").write_text(report_markdown(cfg, results))

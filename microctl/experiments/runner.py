@@ -1,0 +1,415 @@
+"""Run an experiment: training, absolute movement (IV-C), incremental movement (IV-D).
+
+Every move of every phase goes through :class:`MoveRecorder`, which writes one measurement-log
+row (``shared/spec/measurement-log.md``) per completed move, flushed at once, with the extra
+columns ``trial``, ``target_um``, ``controller`` (and ``point`` for the absolute experiment).
+An interrupted run (Ctrl-C, a backend error) therefore leaves valid logs of every completed
+move; :func:`run_experiment` says so in the error it raises.
+
+Common random numbers (simulated backend): every incremental trial k opens a fresh simulated
+stage with seed ``seeds.incremental_stage + k`` for *each* controller, so all controllers meet
+the same noise draws move for move (a simulated move draws a fixed number of normals), and
+differences between controllers come from the controllers, not from the noise. Absolute trial
+k likewise uses ``seeds.absolute_stage + k``. Through the serial backend (hardware or the
+emulator) the stage cannot be reseeded: one stage serves the whole run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from microctl.afm import AnalyticForwardModel
+from microctl.backends import make_backend
+from microctl.backends.base import Measurement, StageBackend
+from microctl.collect import space_filling_moves
+from microctl.config import StageConfig
+from microctl.controller import AFMController, ControlResult, OptimalController
+from microctl.eafm import EAFM
+from microctl.errors import BackendError, SolveError
+from microctl.experiments.config import ExperimentConfig
+from microctl.experiments.design import training_moves
+from microctl.experiments.oracle import OracleController
+from microctl.measurement_log import MeasurementLogWriter, read_log
+from microctl.progress import Progress
+from microctl.training import residual_dataset, train_residual_model
+
+__all__ = ["MoveRecorder", "ExperimentInterrupted", "run_experiment", "BackendFactory"]
+
+#: ``factory(stage_config, seed) -> StageBackend``; seed None = the config's own.
+BackendFactory = Callable[[StageConfig, "int | None"], StageBackend]
+
+LOG_NAMES = {"training": "training_log.csv", "absolute": "absolute_log.csv", "incremental": "incremental_log.csv"}
+
+
+class ExperimentInterrupted(BackendError):
+    """A run stopped by a backend error; the message lists the logs and their rows."""
+
+
+def default_backend_factory(config: StageConfig, seed: int | None) -> StageBackend:
+    """Open the configured backend; the simulated stage is reseeded with ``seed``."""
+    if config.backend.kind == "simulated" and seed is not None:
+        return make_backend(config, seed=int(seed))
+    return make_backend(config)
+
+
+class MoveRecorder:
+    """Executes moves and logs each one as a measurement-log row, written and flushed at once.
+
+    Parameters
+    ----------
+    path : Path
+        The log file (created).
+    config : StageConfig
+        Gives the column names.
+    extra_columns : tuple of str
+        Extra columns written after ``t``.
+
+    Attributes
+    ----------
+    rows : int
+        Completed (logged) moves.
+    """
+
+    def __init__(self, path: Path, config: StageConfig, extra_columns: tuple[str, ...]):
+        self.path = Path(path)
+        self.writer = MeasurementLogWriter(self.path, config.stage, extra_columns=extra_columns)
+        self._clock_offset_s = 0.0
+        self._last_time_s = 0.0
+
+    @property
+    def rows(self) -> int:
+        return self.writer.rows
+
+    def new_stage(self) -> None:
+        """A fresh stage starts its clock at 0: keep ``time_s`` increasing across stages."""
+        self._clock_offset_s += self._last_time_s
+        self._last_time_s = 0.0
+
+    def move(self, backend: StageBackend, u: np.ndarray, **extra: Any) -> tuple[Measurement, np.ndarray]:
+        """Execute ``u`` (shape (n_p,)) and log it.
+
+        Returns
+        -------
+        m : Measurement
+        s_prev : ndarray, shape (n_s,)
+            The state before the move.
+        """
+        s_prev = backend.state
+        m = backend.move(u)
+        self._last_time_s = m.time_s
+        logged = replace(m, time_s=m.time_s + self._clock_offset_s)
+        self.writer.write(logged, s_prev, extra=extra)
+        return m, s_prev
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+@dataclass
+class _Run:
+    """Mutable state of one run (logs, timings, the stage in use)."""
+
+    cfg: ExperimentConfig
+    out: Path
+    stage_config: StageConfig
+    factory: BackendFactory
+    quiet: bool
+    afm: AnalyticForwardModel
+    recorders: dict[str, MoveRecorder] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    shared_backend: StageBackend | None = None
+    emulator: Any = None
+
+    def say(self, text: str) -> None:
+        if not self.quiet:
+            print(text, file=sys.stderr)
+
+    @contextlib.contextmanager
+    def backend(self, seed: int | None) -> Iterator[StageBackend]:
+        """A stage for one trial: fresh and reseeded when simulated, else the shared one."""
+        if self.stage_config.backend.kind == "simulated":
+            with self.factory(self.stage_config, seed) as b:
+                yield b
+        else:
+            if self.shared_backend is None:
+                self.shared_backend = self.factory(self.stage_config, None)
+            yield self.shared_backend
+
+    def truth(self, backend: StageBackend):
+        """The simulated stage behind ``backend`` (for the oracle and true means), or None."""
+        if self.emulator is not None:
+            return self.emulator.stage
+        return backend if hasattr(backend, "true_mean") else None
+
+    def recorder(self, phase: str, extra: tuple[str, ...]) -> MoveRecorder:
+        rec = MoveRecorder(self.out / LOG_NAMES[phase], self.stage_config, extra)
+        self.recorders[phase] = rec
+        return rec
+
+    def log_summary(self) -> str:
+        return ", ".join(f"{r.path.name}: {r.rows} rows" for r in self.recorders.values()) or "no log written"
+
+
+# --------------------------------------------------------------------------------------
+# phases
+# --------------------------------------------------------------------------------------
+
+
+def _train(run: _Run) -> tuple[EAFM, dict]:
+    """Collect the training moves, fit the residual VHGPR (eq. 3), refine on-policy if asked."""
+    cfg, afm, tr = run.cfg, run.afm, run.cfg.training
+    t0 = time.perf_counter()
+    rec = run.recorder("training", ("trial", "target_um", "controller"))
+    moves = training_moves(afm, tr.design, tr.moves, cfg.seeds.design, tr.episode_moves)
+    with run.backend(cfg.seeds.training_stage) as b, Progress(len(moves), "training moves", quiet=run.quiet) as pr:
+        rec.new_stage()
+        for u in moves:
+            m, _ = rec.move(b, u, trial=0, controller="design")
+            pr.step(info=f"t = {m.t_um:.3f} µm")
+    info: dict[str, Any] = {"design": tr.design, "moves": int(len(moves)), "rounds": []}
+    eafm = _fit(run, info, 0)
+    if tr.refine_rounds:
+        lo, hi = tr.refine_target_range_um or afm.t_range()
+        rng = np.random.default_rng(cfg.seeds.refine_targets)
+        for r in range(1, tr.refine_rounds + 1):
+            ctrl = OptimalController(eafm, cfg.controller)
+            done = 0
+            with run.backend(cfg.seeds.training_stage + r) as b, \
+                    Progress(tr.refine_moves, f"refinement round {r}", quiet=run.quiet) as pr:
+                rec.new_stage()
+                while done < tr.refine_moves:
+                    rec.move(b, np.zeros(afm.n_p), trial=r, target_um=0.0, controller="eafm")  # back to zero
+                    done += 1
+                    pr.step()
+                    prev_u = None
+                    for target in np.sort(rng.uniform(lo, hi, tr.refine_episode_targets)):
+                        if done >= tr.refine_moves:
+                            break
+                        try:
+                            res = ctrl.solve(float(target), b.state, u_init=prev_u)
+                        except SolveError:
+                            continue
+                        rec.move(b, res.u, trial=r, target_um=float(target), controller="eafm")
+                        prev_u = res.u
+                        done += 1
+                        pr.step()
+            eafm = _fit(run, info, r)
+    run.timings_s["training"] = time.perf_counter() - t0
+    return eafm, info
+
+
+def _fit(run: _Run, info: dict, round_: int) -> EAFM:
+    tr = run.cfg.training
+    rec = run.recorders["training"]
+    rec.writer._fh.flush()
+    log = read_log(rec.path, run.stage_config.stage, min_rows=5)
+    data = residual_dataset(log, run.afm)
+    t0 = time.perf_counter()
+    run.say(f"experiment: fitting the VHGPR to {len(data.y)} residuals (round {round_})")
+    model = train_residual_model(data, run.afm, n_restarts=tr.restarts, seed=run.cfg.seeds.gp + round_,
+                                 max_iter=tr.max_iter, mean=tr.gp_mean)
+    model.save(run.out / "model.npz")
+    info["rounds"].append({"round": round_, "rows": int(len(data.y)), "bound": float(model.bound),
+                           "fit_time_s": time.perf_counter() - t0,
+                           "f_log_lengthscales": np.asarray(model.f_log_lengthscales).tolist(),
+                           "g_log_lengthscales": np.asarray(model.g_log_lengthscales).tolist()})
+    info["rows"] = int(len(data.y))
+    return EAFM(run.afm, model)
+
+
+def _absolute(run: _Run, eafm: EAFM) -> dict:
+    """IV-C: 30 signals, each from the zero state (u0, u1, u0, u2, ...), ``trials`` trials."""
+    cfg, afm = run.cfg, run.afm
+    t0 = time.perf_counter()
+    rec = run.recorder("absolute", ("trial", "target_um", "controller", "point"))
+    U = space_filling_moves(afm, cfg.absolute.points, seed=cfg.seeds.absolute_points)
+    n, T = len(U), cfg.absolute.trials
+    meas = np.full((T, n), np.nan)
+    afm_pred = np.asarray(afm.t_of(U), dtype=float)
+    eafm_mean = np.full((T, n), np.nan)
+    eafm_std = np.full((T, n), np.nan)
+    true_mean = np.full((T, n), np.nan)
+    true_std = np.full((T, n), np.nan)
+    zero = np.zeros(afm.n_p)
+    with Progress(n * T, "absolute movement", quiet=run.quiet) as pr:
+        for k in range(T):
+            with run.backend(cfg.seeds.absolute_stage + k) as b:
+                rec.new_stage()
+                truth = run.truth(b)
+                for i, u in enumerate(U):
+                    rec.move(b, zero, trial=k, point=-1, controller="none")
+                    s = b.state
+                    p = eafm.predict(s, u)
+                    eafm_mean[k, i], eafm_std[k, i] = float(p.t_mean[0]), math.sqrt(float(p.t_var[0]))
+                    if truth is not None:
+                        true_mean[k, i] = float(truth.true_mean(s, u))
+                        true_std[k, i] = math.sqrt(float(truth.true_var(s, u)))
+                    m, _ = rec.move(b, u, trial=k, point=i, controller="none")
+                    meas[k, i] = m.t_um
+                    pr.step()
+    run.timings_s["absolute"] = time.perf_counter() - t0
+    return {"u": U, "measured_um": meas, "afm_um": afm_pred, "eafm_mean_um": eafm_mean,
+            "eafm_std_um": eafm_std, "true_mean_um": true_mean, "true_std_um": true_std}
+
+
+def _controllers(run: _Run, eafm: EAFM) -> dict:
+    cfg = run.cfg
+    out: dict[str, Any] = {}
+    for name in cfg.controllers:
+        if name == "afm":
+            out[name] = AFMController(run.afm, cfg.controller, reporter=eafm)
+        elif name == "eafm":
+            out[name] = OptimalController(eafm, cfg.controller)
+        else:
+            o = cfg.oracle
+            out[name] = OracleController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
+                                         newton_steps=o.newton_steps)
+    return out
+
+
+def _incremental(run: _Run, eafm: EAFM) -> dict:
+    """IV-D: targets in sequence from the zero state, ``trials`` trials per controller."""
+    cfg, afm = run.cfg, run.afm
+    t0 = time.perf_counter()
+    rec = run.recorder("incremental", ("trial", "target_um", "controller"))
+    targets = list(cfg.incremental.targets_um)
+    T, J = cfg.incremental.trials, len(targets)
+    ctrls = _controllers(run, eafm)
+    res: dict[str, Any] = {}
+    with Progress(len(ctrls) * T * J, "incremental movement", quiet=run.quiet) as pr:
+        for name, ctrl in ctrls.items():
+            r = {key: np.full((T, J), np.nan) for key in
+                 ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s")}
+            r["q_um"] = np.full((T, J, afm.n_q), np.nan)
+            r["status"] = [[""] * J for _ in range(T)]
+            r["fallbacks"] = 0
+            for k in range(T):
+                # the same stage seed for every controller: common random numbers
+                with run.backend(cfg.seeds.incremental_stage + k) as b:
+                    rec.new_stage()
+                    truth = run.truth(b)
+                    if isinstance(ctrl, OracleController):
+                        ctrl.bind(truth)
+                    rec.move(b, np.zeros(afm.n_p), trial=k, target_um=0.0, controller=name)  # the zero state
+                    prev_u = None
+                    for j, target in enumerate(targets):
+                        s = b.state
+                        sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"])
+                        if truth is not None:
+                            r["true_mean_um"][k, j] = float(truth.true_mean(s, sol.u))
+                            r["true_std_um"][k, j] = math.sqrt(float(truth.true_var(s, sol.u)))
+                        m, _ = rec.move(b, sol.u, trial=k, target_um=target, controller=name)
+                        r["reached_um"][k, j] = m.t_um
+                        r["predicted_um"][k, j] = sol.predicted_um
+                        r["predicted_std_um"][k, j] = sol.predicted_std_um
+                        r["solve_time_s"][k, j] = sol.solve_time_s
+                        r["q_um"][k, j] = sol.q
+                        r["status"][k][j] = sol.status
+                        prev_u = sol.u
+                        pr.step(info=f"{name} trial {k + 1} target {target:g} µm")
+            res[name] = r
+    run.timings_s["incremental"] = time.perf_counter() - t0
+    return {"targets_um": targets, "trials": T, "controllers": res}
+
+
+def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallback) -> ControlResult:
+    """Solve with a warm start; on failure retry cold, then fall back to the AFM command (counted)."""
+    for u_init in (prev_u, None):
+        try:
+            return ctrl.solve(float(target), s, u_init=u_init)
+        except SolveError as exc:
+            err = exc
+    r["fallbacks"] += 1
+    run.say(f"experiment: {ctrl.name} could not solve {target:g} µm ({err}); the AFM command was used")
+    return fallback.solve(float(target), s)
+
+
+# --------------------------------------------------------------------------------------
+# the run
+# --------------------------------------------------------------------------------------
+
+
+def _emulated_config(cfg: ExperimentConfig):
+    """Start the in-process emulator and point the serial devices at it."""
+    from microctl.emulator import Emulator
+
+    sc = cfg.stage_config
+    emu = Emulator(sc, seed=cfg.seeds.training_stage)
+    emu.start()
+    ser = sc.backend.serial
+    ser = replace(ser, controllers=tuple(replace(c, url=emu.url(c.name)) for c in ser.controllers),
+                  gauge=replace(ser.gauge, url=emu.url("gauge")))
+    return emu, replace(sc, backend=replace(sc.backend, kind="serial", serial=ser))
+
+
+def run_experiment(cfg: ExperimentConfig, out: str | Path, *, quiet: bool = False,
+                   backend_factory: BackendFactory | None = None) -> dict:
+    """Run the whole experiment and write its outputs into ``out``.
+
+    Parameters
+    ----------
+    cfg : ExperimentConfig
+        Validated (:func:`~microctl.experiments.config.load_experiment_config`).
+    out : path
+        Output folder (created).
+    quiet : bool
+        Hide progress and notes on stderr.
+    backend_factory : callable, optional
+        ``factory(stage_config, seed) -> StageBackend`` (default: :func:`default_backend_factory`).
+
+    Returns
+    -------
+    dict
+        The content of ``results.json``.
+
+    Raises
+    ------
+    ExperimentInterrupted
+        A backend error stopped the run; the logs keep every completed move (the message
+        lists them). KeyboardInterrupt is re-raised after the same note on stderr.
+    """
+    from microctl.experiments import figures, report
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    afm = AnalyticForwardModel(cfg.stage_config.stage)
+    run = _Run(cfg=cfg, out=out, stage_config=cfg.stage_config, factory=backend_factory or default_backend_factory,
+               quiet=quiet, afm=afm)
+    report.write_config(out / "config.yaml", cfg)
+    try:
+        if cfg.emulate:
+            run.emulator, run.stage_config = _emulated_config(cfg)
+        eafm, train_info = _train(run)
+        absolute = _absolute(run, eafm) if cfg.absolute.enabled else None
+        incremental = _incremental(run, eafm) if cfg.incremental.enabled else None
+    except BackendError as exc:
+        raise ExperimentInterrupted(
+            f"experiment stopped by a backend error: {exc}; the logs in {out} keep every completed move "
+            f"({run.log_summary()})") from None
+    except KeyboardInterrupt:
+        print(f"microctl: experiment interrupted; the logs in {out} keep every completed move "
+              f"({run.log_summary()})", file=sys.stderr)
+        raise
+    finally:
+        for rec in run.recorders.values():
+            rec.close()
+        if run.shared_backend is not None:
+            run.shared_backend.close()
+        if run.emulator is not None:
+            run.emulator.stop()
+    run.timings_s["total"] = time.perf_counter() - t_start
+    results = report.build_results(cfg, train_info, absolute, incremental, run.timings_s,
+                                   {k: v.path.name for k, v in run.recorders.items()})
+    figs = figures.write_figures(out, absolute, incremental) if cfg.figures else []
+    results["figures"] = figs
+    report.write_outputs(out, cfg, results)
+    return results

@@ -1,0 +1,205 @@
+"""``microctl experiment`` end to end: simulated and emulated-serial runs, validation, interruption."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from microctl import stats
+from microctl.backends.simulated import SimulatedStage
+from microctl.cli import main
+from microctl.config import load_stage_config
+from microctl.errors import BackendError
+from microctl.experiments.config import load_experiment_config
+from microctl.experiments.runner import run_experiment
+from microctl.measurement_log import read_log
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGE = ROOT / "configs/stage/sim_paper.yaml"
+EMULATED = ROOT / "configs/stage/emulated.yaml"
+
+TINY = {
+    "stage": str(STAGE),
+    "training": {"moves": 20, "design": "face_episodes", "restarts": 1, "max_iter": 60},
+    "absolute": {"points": 3, "trials": 2},
+    "incremental": {"targets_um": [7, 14], "trials": 3},
+    "oracle": {"grid": 9, "line_points": 15, "zooms": 1},
+    "figures": False,
+}
+
+
+def _write(tmp_path: Path, doc: dict, name: str = "exp.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(doc))
+    return p
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("quick")
+    doc = dict(TINY, figures=True)
+    exp = _write(d, doc)
+    out = d / "out"
+    rc = main(["experiment", str(exp), "--out", str(out), "--quiet"])
+    assert rc == 0
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_results_fields(quick_run):
+    out, res = quick_run
+    inc = res["incremental"]
+    assert inc["targets_um"] == [7.0, 14.0] and inc["trials"] == 3
+    for name in ("afm", "eafm", "oracle"):
+        c = inc["controllers"][name]
+        assert len(c["msse_um"]) == 2 and len(c["vsse_um2"]) == 2
+    assert set(inc["p_value"]) == {"msse", "vsse"}
+    ab = res["absolute"]
+    assert len(ab["pe_um"]["afm"]) == 3 and len(ab["pe_um"]["eafm"]) == 3
+    assert "p_value" in ab and 0.0 <= ab["fraction_within_2sigma"] <= 1.0
+    for f in ("report.md", "config.yaml", "model.npz", "training_log.csv", "absolute_log.csv",
+              "incremental_log.csv"):
+        assert (out / f).is_file(), f
+    text = (out / "report.md").read_text()
+    assert "Table II" in text and "Brown–Forsythe" in text
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["experiment"]["training"]["moves"] == 20 and "stage" in cfg["stage_config"]
+    pytest.importorskip("matplotlib")
+    assert (out / "fig5_absolute.png").is_file() and (out / "fig6_incremental.png").is_file()
+
+
+def test_msse_recomputed_from_logs(quick_run):
+    out, res = quick_run
+    stage = load_stage_config(STAGE).stage
+    log = read_log(out / "incremental_log.csv", stage)
+    ctrl = np.array(log.extra["controller"])
+    target = log.extra_numeric("target_um")
+    trial = log.extra_numeric("trial")
+    inc = res["incremental"]
+    for name in ("afm", "eafm", "oracle"):
+        rows = (ctrl == name) & (target > 0)
+        # (trials, targets) in execution order
+        sse = (target[rows] - log.t[rows]).reshape(inc["trials"], len(inc["targets_um"]))
+        assert np.array_equal(trial[rows].reshape(sse.shape)[:, 0], np.arange(inc["trials"]))
+        np.testing.assert_allclose(stats.msse(sse), inc["controllers"][name]["msse_um"], rtol=1e-12)
+        np.testing.assert_allclose(stats.vsse(sse), inc["controllers"][name]["vsse_um2"], rtol=1e-12)
+        # each trial starts by returning to the zero state
+        zero = (ctrl == name) & (target == 0)
+        assert zero.sum() == inc["trials"] and np.allclose(log.u[zero], 0.0)
+    # training log: every designed move, readable
+    assert len(read_log(out / "training_log.csv", stage)) == res["training"]["rows"] == 20
+    # absolute log: 2 moves (u0, u_i) per point per trial
+    assert len(read_log(out / "absolute_log.csv", stage)) == 2 * 3 * 2
+
+
+def test_common_random_numbers(quick_run):
+    """Same seed per trial for every controller: the return-to-zero moves read the same gauge value."""
+    out, res = quick_run
+    stage = load_stage_config(STAGE).stage
+    log = read_log(out / "incremental_log.csv", stage)
+    ctrl = np.array(log.extra["controller"])
+    zero = log.extra_numeric("target_um") == 0
+    reads = {n: log.t[zero & (ctrl == n)] for n in ("afm", "eafm", "oracle")}
+    np.testing.assert_array_equal(reads["afm"], reads["eafm"])
+    np.testing.assert_array_equal(reads["afm"], reads["oracle"])
+
+
+@pytest.mark.parametrize("patch,needle", [
+    ({"training": {"moves": 20, "colour": "red"}}, "training.colour"),
+    ({"incremental": {"targets_um": [7, "x"]}}, "incremental.targets_um[1]"),
+    ({"incremental": {"targets_um": [7, 500]}}, "incremental.targets_um[1]"),
+    ({"controllers": ["afm", "eafm", "magic"]}, "controllers[2]"),
+    ({"controller": {"r_e": "huge"}}, "controller.r_e"),
+    ({"absolute": {"trials": 0}}, "absolute.trials"),
+    ({"stage": "nope.yaml"}, "stage"),
+])
+def test_bad_field_fails_before_any_move(tmp_path, capsys, monkeypatch, patch, needle):
+    moves = []
+    orig = SimulatedStage.move
+    monkeypatch.setattr(SimulatedStage, "move", lambda self, u: moves.append(u) or orig(self, u))
+    exp = _write(tmp_path, {**TINY, **patch})
+    out = tmp_path / "out"
+    rc = main(["experiment", str(exp), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and str(exp) in lines[0]
+    assert moves == [] and not out.exists()
+
+
+def test_oracle_needs_a_simulated_stage(tmp_path, capsys):
+    exp = _write(tmp_path, {**TINY, "stage": str(EMULATED)})
+    rc = main(["experiment", str(exp), "--out", str(tmp_path / "out")])
+    assert rc == 2 and "controllers" in capsys.readouterr().err
+
+
+def test_interrupted_run_keeps_logs(tmp_path, capsys):
+    """A backend failure after k moves: every completed move is in the logs, readable."""
+    k_fail = 31  # 20 training moves, then 11 absolute moves
+    count = {"n": 0}
+
+    class Failing(SimulatedStage):
+        def move(self, u):
+            if count["n"] >= k_fail:
+                raise BackendError("cable pulled")
+            count["n"] += 1
+            return super().move(u)
+
+    cfg = load_experiment_config(_write(tmp_path, TINY))
+    out = tmp_path / "out"
+    with pytest.raises(BackendError, match="cable pulled") as exc:
+        run_experiment(cfg, out, quiet=True, backend_factory=lambda c, seed: Failing(c, seed=seed))
+    assert "absolute_log.csv: 11 rows" in str(exc.value)
+    stage = cfg.stage_config.stage
+    assert len(read_log(out / "training_log.csv", stage)) == 20
+    ab = read_log(out / "absolute_log.csv", stage)
+    assert len(ab) == 11 and list(ab.seq) == list(range(11))
+    assert not (out / "results.json").exists()
+    # through the CLI: exit 1, one clear line
+    count["n"] = 0
+    import microctl.experiments.runner as runner
+
+    orig = runner.default_backend_factory
+    runner.default_backend_factory = lambda c, seed: Failing(c, seed=seed)
+    try:
+        rc = main(["experiment", str(tmp_path / "exp.yaml"), "--out", str(tmp_path / "out2"), "--quiet"])
+    finally:
+        runner.default_backend_factory = orig
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1 and "keep every completed move" in err[0]
+
+
+def test_keyboard_interrupt_keeps_logs(tmp_path, capsys):
+    count = {"n": 0}
+
+    class Interrupted(SimulatedStage):
+        def move(self, u):
+            if count["n"] >= 7:
+                raise KeyboardInterrupt
+            count["n"] += 1
+            return super().move(u)
+
+    cfg = load_experiment_config(_write(tmp_path, TINY))
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(cfg, tmp_path / "out", quiet=True, backend_factory=lambda c, s: Interrupted(c, seed=s))
+    assert "training_log.csv: 7 rows" in capsys.readouterr().err
+    assert len(read_log(tmp_path / "out" / "training_log.csv", cfg.stage_config.stage)) == 7
+
+
+def test_emulated_serial_run(tmp_path):
+    """Once through the serial backend against the in-process emulator (emulate: true)."""
+    doc = {**TINY, "stage": str(EMULATED), "emulate": True, "controllers": ["afm", "eafm"],
+           "training": {"moves": 12, "design": "face_episodes", "restarts": 1, "max_iter": 40},
+           "absolute": {"points": 2, "trials": 1}, "incremental": {"targets_um": [7], "trials": 2}}
+    exp = _write(tmp_path, doc)
+    out = tmp_path / "out"
+    assert main(["experiment", str(exp), "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["backend"] == "emulated serial" and res["common_random_numbers"] is False
+    stage = load_stage_config(EMULATED).stage
+    log = read_log(out / "incremental_log.csv", stage)
+    assert len(log) == 2 * 2 * 2  # 2 controllers x 2 trials x (zero + 1 target)
+    assert set(log.extra["controller"]) == {"afm", "eafm"}
