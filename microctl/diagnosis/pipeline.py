@@ -1,0 +1,241 @@
+"""``microctl diagnose`` end to end: show, name, extend, measure the gain.
+
+:func:`run_diagnosis` answers the four questions of shared/spec/diagnosis.md on one
+measurement run and returns a :class:`Diagnosis` (the report as plain data, the extended
+config, and the arrays the figures need). Every decision uses the same per-test level
+α/4 (α = 1e-3 by default), so that the discrepancy p-value — the Bonferroni minimum over
+its four tests — is below α whenever a cause is accepted, and the false-positive rate on
+clean data is at most α per run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from microctl.afm import AnalyticForwardModel
+from microctl.config import StageConfig, with_corrections
+from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.gain import GainResult, prediction_gain
+from microctl.diagnosis.noise import NoiseSelection, select_noise
+from microctl.diagnosis.residuals import Test, breusch_pagan, gp_lr_test, where_analysis
+from microctl.diagnosis.selection import Selection, select_mean_causes
+from microctl.extended import ExtendedForwardModel
+
+#: Overall significance level of a diagnosis (per run).
+ALPHA = 1e-3
+
+#: Number of tests the discrepancy p-value combines (Bonferroni).
+N_DISCREPANCY_TESTS = 4
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    """Everything a diagnosis found.
+
+    Attributes
+    ----------
+    report : dict
+        report.json content (shared/spec/diagnosis.md fields and more).
+    extended_config : StageConfig
+        The input config with the accepted mean causes in ``stage.corrections``.
+    data : DiagnosisData
+    afm_residual, model_residual, final_residual : ndarray (n,)
+        Residual of the AFM, of the configured model through the physics, and of the
+        extended model.
+    selection : Selection
+    noise : NoiseSelection
+    gain : GainResult or None
+    """
+
+    report: dict
+    extended_config: StageConfig
+    data: DiagnosisData
+    afm_residual: np.ndarray
+    model_residual: np.ndarray
+    final_residual: np.ndarray
+    selection: Selection
+    noise: NoiseSelection
+    gain: GainResult | None
+    extras: dict = field(default_factory=dict)
+
+
+def _sensitivity(config: StageConfig, effects, data: DiagnosisData) -> np.ndarray:
+    ext = ExtendedForwardModel(config.stage, effects)
+    return ext.predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+
+
+def _single_threaded_blas():
+    """Context limiting BLAS to one thread (threadpoolctl, if installed).
+
+    The fits here work on small matrices (n ≤ a few hundred); on a 2-core machine shared
+    with other work, multi-threaded OpenBLAS was measured 10-50× *slower* on them
+    (Cholesky of 250×250: 9 ms vs 0.9 ms).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - optional
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+def run_diagnosis(
+    config: StageConfig,
+    data: DiagnosisData,
+    *,
+    holdout: DiagnosisData | None = None,
+    seed: int = 0,
+    alpha: float = ALPHA,
+    gain: bool = True,
+    gp: bool = True,
+    folds: int = 5,
+    progress: Callable[[str], None] | None = None,
+) -> Diagnosis:
+    """Diagnose one run.
+
+    Parameters
+    ----------
+    config : StageConfig
+        The stage model the data is compared with (its corrections are kept).
+    data : DiagnosisData
+    holdout : DiagnosisData, optional
+        Separate data for the gain (default: cross-validation).
+    seed : int
+        Seeds the folds and the GP fits.
+    alpha : float
+        Overall significance level (each test and acceptance uses α/4).
+    gain : bool
+        Measure the held-out gain (question 4).
+    gp : bool
+        Include the GP variants in the gain.
+    folds : int
+    progress : callable(str), optional
+        Called after each unit of work.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    with _single_threaded_blas():
+        return _run(config, data, holdout=holdout, seed=seed, alpha=alpha, gain=gain, gp=gp, folds=folds,
+                    progress=progress)
+
+
+def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Diagnosis:
+    t_start = time.perf_counter()
+    timing = {}
+    stage = config.stage
+    a_each = alpha / N_DISCREPANCY_TESTS
+    afm = AnalyticForwardModel(stage)
+    afm_resid = data.t - afm.t_of(data.u)
+
+    # ---- 2. name: mean causes (pass 1, unweighted) --------------------------------------------
+    sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
+    model_resid = data.t - sel.baseline.pred
+    resid = data.t - sel.final.pred
+    noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
+    weights = None
+    if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
+        weights = 1.0 / np.sqrt(noise.fit.var)
+        sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
+        resid = data.t - sel.final.pred
+        noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
+    timing["name_s"] = time.perf_counter() - t_start
+
+    # ---- 1. show: significance of the discrepancy ------------------------------------------
+    w0 = np.ones(data.n) if weights is None else weights
+    f_test0 = sel.steps[0].structure
+    lr_best0 = Test("best candidate likelihood ratio (Bonferroni over candidates)",
+                    float("nan"), float(sel.steps[0].p_value), ())
+    het0 = breusch_pagan(model_resid, np.abs(data.dq), "Breusch-Pagan (Koenker) of r² on abs(Δq_i)")
+    if min(f_test0.p_value, lr_best0.p_value, het0.p_value) < 1e-12:
+        # already conclusive: the GP test could only lower the minimum (saves a GP fit)
+        gp0 = Test("GP likelihood ratio against white noise (not run: other tests conclusive)", float("nan"), 1.0)
+    else:
+        gp0, _ = gp_lr_test(model_resid * w0, data.u, seed=seed)
+    tests0 = [f_test0, lr_best0, gp0, het0]
+    p_disc = float(min(1.0, N_DISCREPANCY_TESTS * min(t.p_value for t in tests0)))
+    significant = bool(p_disc < alpha or sel.accepted or noise.fit.friction)
+
+    # ---- unexplained structure left over -----------------------------------------------------
+    final_w = resid * w0
+    f_left = sel.steps[-1].structure
+    gp_left, gp_fit = gp_lr_test(final_w, data.u, seed=seed)
+    p_left = float(min(1.0, 2 * min(f_left.p_value, gp_left.p_value)))
+    unexplained = bool(significant and p_left < a_each)
+    timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
+
+    mean_entries = list(sel.entries)
+    accepted_mean = [s.cause for s in sel.accepted]
+    if unexplained:
+        accepted_mean.append("unexplained")
+        mean_entries.insert(len(sel.accepted), {
+            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": 0.0, "p_value": p_left,
+            "equivalent": [], "accepted": True,
+            "tests": [f_left.to_dict(), gp_left.to_dict()],
+        })
+
+    # ---- 3. extend -------------------------------------------------------------------------
+    ext_cfg = with_corrections(config, sel.final.effects)
+
+    # ---- 4. gain -----------------------------------------------------------------------------
+    g = None
+    if gain:
+        t0 = time.perf_counter()
+        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, holdout=holdout, friction=noise.fit.friction,
+                            folds=folds, seed=seed, gp=gp, progress=progress)
+        timing["gain_s"] = time.perf_counter() - t0
+    timing["total_s"] = time.perf_counter() - t_start
+
+    where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
+    noise_std = noise.fit.std_um
+    report = {
+        "rows": data.n,
+        "source": data.source,
+        "discrepancy": {
+            "significant": significant,
+            "afm_rmse_um": float(np.sqrt(np.mean(afm_resid**2))),
+            "model_rmse_um": float(np.sqrt(np.mean(model_resid**2))),
+            "extended_rmse_um": float(np.sqrt(np.mean(resid**2))),
+            "noise_std_um": float(noise_std),
+            "p_value": p_disc,
+            "alpha": alpha,
+            "test": ("Bonferroni minimum of: F-test of the model residual against a generic basis, "
+                     "best-cause likelihood ratio, GP-vs-white-noise likelihood ratio, Breusch-Pagan on abs(Δq)"),
+            "tests": [t.to_dict() for t in tests0],
+            "where": where,
+            "heteroscedasticity": het0.to_dict(),
+        },
+        "accepted": {"mean": accepted_mean, "noise": list(noise.accepted)},
+        "mean_causes": mean_entries,
+        "noise_causes": noise.entries,
+        "selection": {
+            "stop_reason": sel.stop_reason,
+            "weighted": weights is not None,
+            "steps": [
+                {"best": s.best, "p_value": s.p_value, "accepted": s.accepted, "equivalent": list(s.equivalent),
+                 "structure_p_value": s.structure.p_value, "current_bic": s.current.bic,
+                 "best_bic": (s.fits[s.best].bic if s.best else None)}
+                for s in sel.steps
+            ],
+        },
+        "unexplained": {"significant": unexplained, "p_value": p_left,
+                        "tests": [f_left.to_dict(), gp_left.to_dict()]},
+        "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
+        "nuisance": {
+            "gauge_zero_um": float(sel.final.zero_um),
+            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um)},
+            "note": ("constant offset of the readings (the gauge zero is one noisy reading at the zero state); "
+                     "fitted in every mean model, not a stage cause, not written to extended.yaml"),
+        },
+        "corrections": ext_cfg.stage.corrections.to_dict(),
+        "timing_s": timing,
+    }
+    if g is not None:
+        report["gain"] = g.to_dict()
+    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g)

@@ -1,0 +1,217 @@
+"""Greedy forward selection of mean causes by BIC, with equivalence classes.
+
+Step 0 fits the stage model as configured (no new cause). At each step every remaining
+candidate (:func:`~microctl.diagnosis.causes.candidate_specs`) is fitted *jointly* with the
+causes accepted so far (warm-started) and the one with the lowest BIC,
+
+    BIC = n log(RSS/n) + k log n,
+
+is accepted if it pays: ΔBIC < 0 against the current model **and** its likelihood-ratio
+test LR = n log(RSS_cur/RSS_new) ~ χ²(Δk), Bonferroni-corrected over the candidates of the
+step, has p < α. Selection stops when nothing pays, or when the residual is at the noise
+level (the generic structure F-test of :mod:`microctl.diagnosis.residuals` is not
+significant and no candidate's LR is).
+
+Equivalence: a candidate whose own fit is within ``EQUIV_LR`` of the accepted one's
+likelihood (2 Δℓ = n log(RSS_c/RSS_best) < 6: the two causes predict the same data within
+the noise) is listed in the accepted cause's ``equivalent`` and removed from later steps.
+For the Table I stage with one gauge this groups ``tool_offset`` with ``contact_offset`` of
+every actuator (docs/diagnosis.md derives why and what measurement separates them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy import stats
+
+from microctl.config import Effects, Stage
+from microctl.diagnosis.causes import CauseSpec, MeanFit, candidate_specs, fit_mean
+from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.residuals import Test, structure_f_test
+
+#: 2 Δ log-likelihood below which two fitted causes are called equivalent.
+EQUIV_LR = 6.0
+
+#: Most mean causes accepted (a safety stop; the data rarely support more).
+MAX_CAUSES = 4
+
+
+def cause_entry(spec: CauseSpec, theta: np.ndarray, stderr: np.ndarray, **extra) -> dict:
+    """A report entry ``{"cause", "params", "stderr", ...}`` (shared/spec/diagnosis.md)."""
+    return {
+        "cause": spec.cause,
+        "params": spec.params_dict(theta),
+        "stderr": {p: (float(s) if np.isfinite(s) else None) for p, s in zip(spec.params, stderr)},
+        **extra,
+    }
+
+
+@dataclass(frozen=True, eq=False)
+class Step:
+    """One step of the greedy selection.
+
+    Attributes
+    ----------
+    current : MeanFit
+        Model before the step.
+    fits : dict of str -> MeanFit
+        Joint fit of the current causes + each candidate (key = candidate key).
+    best : str or None
+        Key of the lowest BIC.
+    p_value : float
+        Bonferroni LR p-value of the best candidate.
+    structure : Test
+        Structure F-test of the current model's residual.
+    accepted : bool
+    equivalent : tuple of str
+        Keys equivalent to the best.
+    """
+
+    current: MeanFit
+    fits: dict
+    best: str | None
+    p_value: float
+    structure: Test
+    accepted: bool
+    equivalent: tuple = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """Result of :func:`select_mean_causes`.
+
+    Attributes
+    ----------
+    baseline : MeanFit
+        The configured model (no new cause).
+    final : MeanFit
+        The accepted causes fitted jointly.
+    steps : list of Step
+    accepted : list of CauseSpec
+    entries : list of dict
+        Report entries, ranked best first: the accepted causes (with params from ``final``
+        and their ``equivalent`` lists), then the other candidates of the first step by BIC.
+    stop_reason : str
+    """
+
+    baseline: MeanFit
+    final: MeanFit
+    steps: list
+    accepted: list
+    entries: list
+    stop_reason: str
+    specs: tuple = field(default=())
+
+
+def _lr_p(cur: MeanFit, new: MeanFit, n_tests: int) -> float:
+    dk = max(new.k - cur.k, 1)
+    lr = max(new.n * np.log(max(cur.rss, 1e-300) / max(new.rss, 1e-300)), 0.0)
+    return float(min(stats.chi2.sf(lr, dk) * n_tests, 1.0))
+
+
+def select_mean_causes(
+    stage: Stage,
+    data: DiagnosisData,
+    *,
+    alpha: float = 1e-3,
+    weights: np.ndarray | None = None,
+    specs: Sequence[CauseSpec] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Selection:
+    """Greedy forward selection (see the module docstring).
+
+    Parameters
+    ----------
+    stage : Stage
+        The configured model; ``stage.corrections`` stay in every fit.
+    data : DiagnosisData
+    alpha : float
+        Significance level of an acceptance (Bonferroni over a step's candidates).
+    weights : ndarray (n,), optional
+        1/std per reading from a noise model (weighted least squares).
+    specs : sequence of CauseSpec, optional
+        Candidates (default every vocabulary cause; ``drift`` only with times).
+    progress : callable(str), optional
+        Called once per candidate fit.
+
+    Returns
+    -------
+    Selection
+    """
+    base: Effects = stage.corrections
+    specs = list(candidate_specs(stage, data.time_s is not None) if specs is None else specs)
+    baseline = fit_mean(stage, base, [], data, weights=weights)
+    current = baseline
+    accepted: list[CauseSpec] = []
+    excluded: set[str] = set()
+    steps: list[Step] = []
+    stop = "nothing pays"
+    while True:
+        resid = data.t - current.pred
+        if weights is not None:
+            resid = resid * weights
+        structure = structure_f_test(resid, data, current.k, weights)
+        remaining = [s for s in specs if s.key not in excluded]
+        if len(accepted) >= MAX_CAUSES or not remaining:
+            steps.append(Step(current, {}, None, 1.0, structure, False))
+            stop = "no candidates left" if not remaining else f"{MAX_CAUSES} causes accepted"
+            break
+        fits: dict[str, MeanFit] = {}
+        for s in remaining:
+            theta0 = np.concatenate([current.theta, s.start_from(base)])  # warm start
+            fits[s.key] = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, weights=weights)
+            if progress is not None:
+                progress(s.key)
+        best_key = min(fits, key=lambda k: fits[k].bic)
+        best = fits[best_key]
+        p = _lr_p(current, best, len(fits))
+        ok = best.bic < current.bic and p < alpha
+        equiv = tuple(
+            k for k, f in fits.items()
+            if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR
+        ) if ok else ()
+        steps.append(Step(current, fits, best_key, p, structure, ok, equiv))
+        if not ok:
+            stop = "residual at the noise level" if structure.p_value >= alpha else "nothing pays"
+            break
+        spec = next(s for s in remaining if s.key == best_key)
+        accepted.append(spec)
+        excluded |= {best_key, *equiv}
+        current = best
+    final = current
+    return Selection(baseline, final, steps, accepted, _entries(final, steps, accepted), stop, tuple(specs))
+
+
+def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> list[dict]:
+    out: list[dict] = []
+    split = final.split()
+    for j, (spec, theta, se) in enumerate(split):
+        step = next(s for s in steps if s.best == spec.key and s.accepted)
+        cur_bic = step.current.bic
+        eq = []
+        for k in step.equivalent:
+            f = step.fits[k]
+            s2, th2, se2 = f.split()[-1]
+            eq.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - step.fits[spec.key].bic),
+                                  rank_deficient=bool(f.rank_deficient)))
+        out.append(cause_entry(spec, theta, se, delta_bic=0.0,
+                               delta_bic_vs_previous=float(step.fits[spec.key].bic - cur_bic),
+                               p_value=float(step.p_value), rank_deficient=bool(final.rank_deficient),
+                               equivalent=eq, accepted=True))
+    # the other candidates of the first step, by BIC relative to its best
+    first = steps[0]
+    if first.fits:
+        listed = {e["cause"] + (f"[{e['params']['actuator']}]" if "actuator" in e["params"] else "")
+                  for e in out} | set().union(*[set(s.equivalent) for s in steps])
+        best_bic = min(f.bic for f in first.fits.values())
+        for k, f in sorted(first.fits.items(), key=lambda kv: kv[1].bic):
+            if k in listed:
+                continue
+            s2, th2, se2 = f.split()[-1]
+            out.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - best_bic),
+                                   delta_bic_vs_previous=float(f.bic - first.current.bic),
+                                   rank_deficient=bool(f.rank_deficient), equivalent=[], accepted=False))
+    return out
