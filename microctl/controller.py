@@ -32,12 +32,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-try:  # shipped with scikit-learn/scipy stacks; optional
-    from threadpoolctl import ThreadpoolController
-except ImportError:  # pragma: no cover
-    ThreadpoolController = None
-
 from microctl.afm import AnalyticForwardModel
+from microctl.blas import single_thread_blas
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError, SolveError
 
@@ -179,30 +175,6 @@ def _ipopt_options(settings: ControllerSettings) -> dict:
     return opts
 
 
-_POOL: list = []
-
-
-class _SingleThreadBLAS:
-    """Limit BLAS to one thread inside a solve.
-
-    The seeding products are small (m x 8 times 8 x n); on this 2-core machine a
-    multi-threaded OpenBLAS made them up to 80x slower whenever the other core was busy
-    (measured: 15.8 ms vs 0.2 ms for 150 x 8 @ 8 x 2000). Entering costs ~12 µs.
-    """
-
-    def __enter__(self):
-        if ThreadpoolController is None:
-            self._ctx = None
-            return self
-        if not _POOL:
-            _POOL.append(ThreadpoolController())
-        self._ctx = _POOL[0].limit(limits=1, user_api="blas")
-        self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._ctx is not None:
-            self._ctx.__exit__(*exc)
 
 
 # --------------------------------------------------------------------------- redundant set
@@ -491,7 +463,7 @@ class _EAFMController(_BaseController):
             Unreachable target (message gives the reachable interval from ``state``), or
             no command passing the checks.
         """
-        with _SingleThreadBLAS():
+        with single_thread_blas():
             return self._solve(target_um, state, u_init, time.perf_counter())
 
     def _solve(self, target_um: float, state: np.ndarray | None, u_init: np.ndarray | None,

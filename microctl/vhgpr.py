@@ -19,7 +19,6 @@ in the fitted model are in standardised units except where a field says otherwis
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import math
@@ -27,13 +26,14 @@ import time
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
 from scipy.linalg import lapack
 from scipy.optimize import minimize
 
+from microctl.blas import single_thread_blas
 from microctl.errors import ConfigError, DataError, MicroctlError
 
 __all__ = ["FORMAT_VERSION", "VHGPR", "FittedVHGPR", "VHGPRPrediction", "ard_se"]
@@ -57,25 +57,6 @@ _BOUNDS = {
 
 # Largest number of points used by the homoscedastic GP that initialises the fit.
 _INIT_SUBSET = 400
-
-@contextlib.contextmanager
-def _blas_single_thread() -> Iterator[None]:
-    """Run the BLAS on one thread during a fit, if threadpoolctl is available.
-
-    Measured on the 2-core development machine: with other processes competing for the
-    cores, a multi-threaded OpenBLAS slows the n = 2000 bound evaluation from ~4 s to
-    20-50 s (threads spin waiting for each other), and for small n thread overhead
-    dominates anyway; one thread is predictable.  Without threadpoolctl (an optional
-    dependency) the BLAS keeps its own setting (e.g. ``OPENBLAS_NUM_THREADS``).
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        yield
-        return
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
-
 
 def _default_max_iter(n: int) -> int:
     """Iterations per run when ``max_iter`` is None: 100 up to n = 200, then 100 (200/n)^0.6, at least 25.
@@ -822,7 +803,7 @@ class VHGPR:
         """
         t0 = time.perf_counter()
         X, y = _validate_training(X, y)
-        with _blas_single_thread():
+        with single_thread_blas():
             return self._fit(X, y, t0)
 
     def _fit(self, X: np.ndarray, y: np.ndarray, t0: float) -> FittedVHGPR:

@@ -35,9 +35,15 @@ def _model(afm: AnalyticForwardModel, n: int = 60, seed: int = 0):
     return bind_to_stage(m, afm)
 
 
-@pytest.fixture(scope="module")
-def eafm(afm):
-    return EAFM(afm, _model(afm))
+@pytest.fixture(scope="module", params=["constant_mean", "linear_mean"])
+def eafm(afm, request):
+    """Every EAFM test runs with the GP's constant prior mean and with a linear one."""
+    model = _model(afm)
+    if request.param == "linear_mean":
+        coef = np.random.default_rng(7).normal(0.0, 0.3, model.n_inputs)
+        coef.setflags(write=False)
+        model = dataclasses.replace(model, mean_coef=coef)
+    return EAFM(afm, model)
 
 
 def _points(afm, m, seed=1):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
 
 from microctl.afm import AnalyticForwardModel, contact_map, hinge_jacobian
 from microctl.commands._common import print_json

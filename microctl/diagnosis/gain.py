@@ -27,7 +27,7 @@ import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.config import Stage
-from microctl.diagnosis.causes import CauseSpec, fit_mean, predict
+from microctl.diagnosis.causes import CauseSpec, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.noise import fit_noise
 from microctl.extended import ExtendedForwardModel

@@ -192,7 +192,7 @@ def select_noise(resid: np.ndarray, J: np.ndarray, dq: np.ndarray, u: np.ndarray
             "cause": "actuator_friction", "params": {"actuator": a_best, "std_per_um": float(current.std_per_um[j])},
             "stderr": {"std_per_um": float(current.stderr_per_um[j])}, "delta_bic": float(d_bic),
             "p_value": float(p), "equivalent": [], "accepted": True})
-        accepted.insert(len(accepted) - 1, f"actuator_friction")
+        accepted.insert(len(accepted) - 1, "actuator_friction")
     # homoscedastic std of the final model
     entries[-1]["params"]["std_um"] = current.std_um
     entries[-1]["stderr"]["std_um"] = current.stderr_std_um

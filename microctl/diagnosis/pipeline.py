@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
+from microctl.blas import single_thread_blas
 from microctl.config import StageConfig, with_corrections
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.gain import GainResult, prediction_gain
@@ -68,22 +69,6 @@ def _sensitivity(config: StageConfig, effects, data: DiagnosisData) -> np.ndarra
     return ext.predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
 
 
-def _single_threaded_blas():
-    """Context limiting BLAS to one thread (threadpoolctl, if installed).
-
-    The fits here work on small matrices (n ≤ a few hundred); on a 2-core machine shared
-    with other work, multi-threaded OpenBLAS was measured 10-50× *slower* on them
-    (Cholesky of 250×250: 9 ms vs 0.9 ms).
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
-
-
 def run_diagnosis(
     config: StageConfig,
     data: DiagnosisData,
@@ -121,7 +106,7 @@ def run_diagnosis(
     -------
     Diagnosis
     """
-    with _single_threaded_blas():
+    with single_thread_blas():
         return _run(config, data, holdout=holdout, seed=seed, alpha=alpha, gain=gain, gp=gp, folds=folds,
                     progress=progress)
 
