@@ -6,7 +6,14 @@ variational heteroscedastic Gaussian process (VHGPR), and an optimal controller 
 reaches a target tool pose with the smallest predicted noise variance.
 """
 
-from microctl.errors import BackendError, ConfigError, DataError, MicroctlError, SolveError
+from microctl.errors import (
+    BackendError,
+    ConfigError,
+    DataError,
+    MicroctlError,
+    SolveError,
+    UnreachableTargetError,
+)
 
 __version__ = "0.1.0"
 
@@ -16,5 +23,6 @@ __all__ = [
     "DataError",
     "MicroctlError",
     "SolveError",
+    "UnreachableTargetError",
     "__version__",
 ]

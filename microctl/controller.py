@@ -35,7 +35,7 @@ import numpy as np
 from microctl.afm import AnalyticForwardModel
 from microctl.blas import single_thread_blas
 from microctl.eafm import EAFM
-from microctl.errors import ConfigError, SolveError
+from microctl.errors import ConfigError, SolveError, UnreachableTargetError
 
 __all__ = [
     "R_E_SETTINGS", "ControllerSettings", "ControlResult", "OptimalController", "AFMController",
@@ -482,7 +482,7 @@ class _EAFMController(_BaseController):
         if mins.size == 0 and not starts:
             lo, hi = self.reachable_interval(s)
             if not (lo - cfg.constraint_tol <= target <= hi + cfg.constraint_tol):
-                raise SolveError(f"target {target:g} µm is unreachable from state "
+                raise UnreachableTargetError(f"target {target:g} µm is unreachable from state "
                                  f"[{', '.join(f'{v:g}' for v in s)}]: the EAFM reaches [{lo:.6g}, {hi:.6g}] µm")
             # reachable but the grid missed the thin section: a dense retry
             U, obj, mins = self._seeds(s, target, 4 * cfg.grid)
@@ -678,7 +678,7 @@ class AFMController(_BaseController):
         target = float(target_um)
         lo, hi = self._t_range
         if not (lo - self.settings.constraint_tol <= target <= hi + self.settings.constraint_tol):
-            raise SolveError(f"target {target:g} µm is unreachable from state "
+            raise UnreachableTargetError(f"target {target:g} µm is unreachable from state "
                              f"[{', '.join(f'{v:g}' for v in s)}]: the AFM reaches [{lo:.6g}, {hi:.6g}] µm")
         d = self.rset.d_of_target(target)
         K, w, qp = self.afm.K, self.afm.w_pred, s[1:]

@@ -35,5 +35,12 @@ class SolveError(MicroctlError):
     """The controller could not produce a valid control signal."""
 
 
+class UnreachableTargetError(SolveError, ValueError):
+    """The target tool pose lies outside what the stage can reach from the given state.
+
+    The message gives the reachable interval; the CLI treats it as an input error (exit 2).
+    """
+
+
 #: Errors that are the user's input's fault: the CLI exits with status 2 for these.
-INPUT_ERRORS = (ConfigError, DataError)
+INPUT_ERRORS = (ConfigError, DataError, UnreachableTargetError)

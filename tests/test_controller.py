@@ -13,7 +13,7 @@ from microctl.afm import AnalyticForwardModel
 from microctl.config import load_stage_config
 from microctl.controller import (AFMController, ControllerSettings, EAFMMeanController, OptimalController)
 from microctl.eafm import EAFM, bind_to_stage
-from microctl.errors import ConfigError, SolveError
+from microctl.errors import ConfigError, SolveError, UnreachableTargetError
 from microctl.training import fixed_hyperparameter_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -157,9 +157,9 @@ def test_reaches_the_dense_grid_optimum(afm, eafm, opt):
 
 
 def test_unreachable_target_gives_interval(afm, eafm, opt):
-    with pytest.raises(SolveError, match=r"unreachable.*reaches \[-?[0-9.]+, [0-9.]+\] µm"):
+    with pytest.raises(UnreachableTargetError, match=r"unreachable.*reaches \[-?[0-9.]+, [0-9.]+\] µm"):
         opt.solve(500.0)
-    with pytest.raises(SolveError, match=r"AFM reaches \[-58.2789, 90.2789\]"):
+    with pytest.raises(UnreachableTargetError, match=r"AFM reaches \[-58.2789, 90.2789\]"):
         AFMController(afm).solve(-500.0)
 
 

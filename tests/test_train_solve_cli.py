@@ -81,11 +81,12 @@ def test_bad_state_exit_2(trained, capsys, state, needle):
     assert rc == 2 and needle in err and len(err.strip().splitlines()) == 1
 
 
-def test_unreachable_target_exit_1(trained, capsys):
+def test_unreachable_target_exit_2(trained, capsys):
     d, log, model, afm = trained
     rc = main(["solve", "--config", str(CONFIG), "--model", str(model), "--target", "400"])
     err = capsys.readouterr().err
-    assert rc == 1 and "unreachable" in err and "reaches [" in err
+    # the target value is the input at fault: exit 2, one line with the reachable interval
+    assert rc == 2 and "unreachable" in err and "reaches [" in err and len(err.strip().splitlines()) == 1
 
 
 def test_model_for_another_geometry_refused(trained, capsys, tmp_path):
