@@ -13,7 +13,7 @@ from microctl.afm import AnalyticForwardModel
 from microctl.config import load_stage_config
 from microctl.controller import (AFMController, ControllerSettings, EAFMMeanController, OptimalController)
 from microctl.eafm import EAFM, bind_to_stage
-from microctl.errors import ConfigError, SolveError, UnreachableTargetError
+from microctl.errors import ConfigError, UnreachableTargetError
 from microctl.training import fixed_hyperparameter_model
 
 ROOT = Path(__file__).resolve().parents[1]
