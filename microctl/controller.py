@@ -177,6 +177,13 @@ def _ipopt_options(settings: ControllerSettings) -> dict:
 
 
 
+def _unreachable(target: float, s: np.ndarray, model: str, lo: float, hi: float) -> UnreachableTargetError:
+    """The error for a target outside the interval ``model`` reaches from state ``s``."""
+    state = ", ".join(f"{v:g}" for v in s)
+    return UnreachableTargetError(
+        f"target {target:g} µm is unreachable from state [{state}]: the {model} reaches [{lo:.6g}, {hi:.6g}] µm")
+
+
 # --------------------------------------------------------------------------- redundant set
 
 
@@ -482,8 +489,7 @@ class _EAFMController(_BaseController):
         if mins.size == 0 and not starts:
             lo, hi = self.reachable_interval(s)
             if not (lo - cfg.constraint_tol <= target <= hi + cfg.constraint_tol):
-                raise UnreachableTargetError(f"target {target:g} µm is unreachable from state "
-                                 f"[{', '.join(f'{v:g}' for v in s)}]: the EAFM reaches [{lo:.6g}, {hi:.6g}] µm")
+                raise _unreachable(target, s, "EAFM", lo, hi)
             # reachable but the grid missed the thin section: a dense retry
             U, obj, mins = self._seeds(s, target, 4 * cfg.grid)
         best_seed = float(obj[mins[0]]) if mins.size else math.inf
@@ -678,8 +684,7 @@ class AFMController(_BaseController):
         target = float(target_um)
         lo, hi = self._t_range
         if not (lo - self.settings.constraint_tol <= target <= hi + self.settings.constraint_tol):
-            raise UnreachableTargetError(f"target {target:g} µm is unreachable from state "
-                             f"[{', '.join(f'{v:g}' for v in s)}]: the AFM reaches [{lo:.6g}, {hi:.6g}] µm")
+            raise _unreachable(target, s, "AFM", lo, hi)
         d = self.rset.d_of_target(target)
         K, w, qp = self.afm.K, self.afm.w_pred, s[1:]
         # unconstrained-in-range minimiser of ||K u - q_prev||^2 on the plane w·u = d (KKT system)

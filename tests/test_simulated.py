@@ -150,3 +150,12 @@ def test_sim_paper_keeps_every_ball_loaded():
     model = contact_model(cfg.stage, cfg.backend.simulated.effects)
     _, active = equilibrium(model, None, actual_positions(model, q))
     assert np.all(active)
+
+
+def test_round_off_at_a_bound_is_snapped_not_sent_outside():
+    """K u a hair (1e-12 µm) below 0 is round-off: the command sent is exactly the bound."""
+    cfg = load_stage_config(ROOT / "configs/stage/table1.yaml")
+    sim = SimulatedStage(cfg)
+    u = np.array([-1e-12, 0.0, 0.0])  # q = K u = -1e-12 on every actuator
+    m = sim.move(u)
+    assert np.all(m.q_um >= 0.0) and np.all(m.q_um == 0.0)

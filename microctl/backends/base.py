@@ -19,7 +19,8 @@ from microctl.afm import inverse_kinematics_matrix, tool_vector
 from microctl.config import StageConfig
 from microctl.errors import BackendError
 
-#: Commands this close outside a range (round-off of K u at a bound) are accepted as they are.
+#: Commands this close outside a range (round-off of K u at a bound) are snapped onto the
+#: bound; anything further out is refused. Nothing outside a range is ever sent.
 RANGE_TOLERANCE_UM = 1e-9
 
 
@@ -114,7 +115,7 @@ class StageBackend(abc.ABC):
                     f"move refused: actuator {name} would be commanded to {q[i]:.4f} µm, outside its range "
                     f"[{lo:g}, {hi:g}] µm (u = {np.array2string(u, precision=4)}); nothing was sent"
                 )
-        return u, q
+        return u, np.clip(q, self.range_lo, self.range_hi)  # round-off only (checked above)
 
     # ---- interface -----------------------------------------------------------------
     @abc.abstractmethod
