@@ -17,15 +17,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 import yaml
 
 from microctl.errors import ConfigError
+from microctl.fields import FieldReader
 
 #: Twist components of a rigid body, in the paper's order v = [v; ω] (eq. 5): translations
 #: in µm, rotations in mrad.
@@ -39,7 +39,6 @@ MAX_CONDITION = 1e6
 #: normal needs ten times its stroke to move the platform (ill-conditioned eq. 10).
 MIN_TRANSMISSION = 0.1
 
-_UNIT_TOL = 1e-6
 
 
 # --------------------------------------------------------------------------------------
@@ -476,79 +475,7 @@ class StageConfig:
 # --------------------------------------------------------------------------------------
 
 
-class _Ctx:
-    """Where we are in the file, for messages."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, path: str, message: str) -> ConfigError:
-        return ConfigError(f"{self.source}: {path}: {message}")
-
-    def mapping(self, value: Any, path: str, allowed: Iterable[str], required: Iterable[str] = ()) -> dict:
-        if not isinstance(value, Mapping):
-            raise self.fail(path, f"expected a mapping with keys {sorted(allowed)}, got {type(value).__name__}")
-        allowed = list(allowed)
-        for key in value:
-            if key not in allowed:
-                raise self.fail(f"{path}.{key}", f"unknown key '{key}'; valid keys here: {', '.join(allowed)}")
-        for key in required:
-            if key not in value:
-                raise self.fail(f"{path}.{key}", "is required")
-        return dict(value)
-
-    def number(self, value: Any, path: str, *, positive: bool = False, nonneg: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(path, f"expected a number, got {value!r}")
-        x = float(value)
-        if not math.isfinite(x):
-            raise self.fail(path, f"expected a finite number, got {value!r}")
-        if positive and x <= 0:
-            raise self.fail(path, f"must be > 0, got {value!r}")
-        if nonneg and x < 0:
-            raise self.fail(path, f"must be >= 0, got {value!r}")
-        return x
-
-    def integer(self, value: Any, path: str, *, lo: int | None = None, hi: int | None = None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(path, f"expected an integer, got {value!r}")
-        if lo is not None and value < lo or hi is not None and value > hi:
-            raise self.fail(path, f"must be an integer in [{lo}, {hi}], got {value!r}")
-        return int(value)
-
-    def string(self, value: Any, path: str, *, blank_ok: bool = False) -> str:
-        if not isinstance(value, str) or value == "" or (not blank_ok and not value.strip()):
-            raise self.fail(path, f"expected a non-empty string, got {value!r}")
-        return value
-
-    def boolean(self, value: Any, path: str) -> bool:
-        if not isinstance(value, bool):
-            raise self.fail(path, f"expected true or false, got {value!r}")
-        return value
-
-    def vector(self, value: Any, path: str, n: int) -> tuple[float, ...]:
-        if not isinstance(value, (list, tuple)) or len(value) != n:
-            got = f"{len(value)} values" if isinstance(value, (list, tuple)) else repr(value)
-            raise self.fail(path, f"expected a list of {n} numbers, got {got}")
-        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
-
-    def unit_vector(self, value: Any, path: str) -> tuple[float, float, float]:
-        v = self.vector(value, path, 3)
-        norm = math.sqrt(sum(x * x for x in v))
-        if norm == 0.0:
-            raise self.fail(path, "is the zero vector; give a unit vector, e.g. [0, 0, 1]")
-        if abs(norm - 1.0) > _UNIT_TOL:
-            raise self.fail(path, f"has length {norm:.6g}, must be a unit vector (length 1 ± {_UNIT_TOL})")
-        return v  # type: ignore[return-value]
-
-    def interval(self, value: Any, path: str) -> tuple[float, float]:
-        lo, hi = self.vector(value, path, 2)
-        if lo >= hi:
-            raise self.fail(path, f"lower bound {lo:g} must be below upper bound {hi:g}")
-        return (lo, hi)
-
-
-def _parse_effects(ctx: _Ctx, raw: Any, path: str, n_act: int) -> Effects:
+def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int) -> Effects:
     if raw is None:
         return Effects()
     allowed = list(_PER_ACTUATOR_CAUSES) + list(_GLOBAL_CAUSES)
@@ -583,7 +510,7 @@ _CAUSE_RULES = {
 }
 
 
-def _parse_cause(ctx: _Ctx, cls: type, raw: Any, path: str, n_act: int) -> Any:
+def _parse_cause(ctx: FieldReader, cls: type, raw: Any, path: str, n_act: int) -> Any:
     names = [f.name for f in fields(cls)]
     raw = ctx.mapping(raw, path, names, required=names)
     kwargs = {}
@@ -595,7 +522,7 @@ def _parse_cause(ctx: _Ctx, cls: type, raw: Any, path: str, n_act: int) -> Any:
     return cls(**kwargs)
 
 
-def _parse_stage(ctx: _Ctx, raw: Any) -> Stage:
+def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
     raw = ctx.mapping(
         raw, "stage", ["name", "dof", "actuators", "tool", "physics", "corrections"], required=["actuators", "tool"]
     )
@@ -653,9 +580,10 @@ def _parse_stage(ctx: _Ctx, raw: Any) -> Stage:
         raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
 
     ph = ctx.mapping(
-        raw.get("physics", {}) or {},
+        raw.get("physics"),
         "stage.physics",
         ["contact_stiffness_n_per_um", "preload_n", "flexure_stiffness"],
+        none_ok=True,
     )
     default = Physics()
     flex_default = dict(zip(("z", "rx", "ry"), default.flexure_stiffness))
@@ -688,7 +616,7 @@ def _parse_stage(ctx: _Ctx, raw: Any) -> Stage:
     return stage
 
 
-def _check_conditioning(ctx: _Ctx, stage: Stage) -> None:
+def _check_conditioning(ctx: FieldReader, stage: Stage) -> None:
     """Refuse geometries where H R^T J (eq. 10) or K (eq. 12) is singular or ill-conditioned."""
     from microctl.afm import contact_map, inverse_kinematics_matrix  # local: afm imports config
 
@@ -725,7 +653,7 @@ def _check_conditioning(ctx: _Ctx, stage: Stage) -> None:
         )
 
 
-def _parse_backend(ctx: _Ctx, raw: Any, stage: Stage) -> Backend:
+def _parse_backend(ctx: FieldReader, raw: Any, stage: Stage) -> Backend:
     if raw is None:
         return Backend()
     raw = ctx.mapping(raw, "backend", ["kind", "simulated", "serial"])
@@ -733,9 +661,10 @@ def _parse_backend(ctx: _Ctx, raw: Any, stage: Stage) -> Backend:
     if kind not in ("simulated", "serial"):
         raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: simulated, serial")
     s = ctx.mapping(
-        raw.get("simulated", {}) or {},
+        raw.get("simulated"),
         "backend.simulated",
         ["seed", "gauge_noise_std_um", "driver_accuracy_um", "move_time_s", "effects"],
+        none_ok=True,
     )
     d = SimulatedBackend()
     sim = SimulatedBackend(
@@ -757,7 +686,7 @@ def _parse_backend(ctx: _Ctx, raw: Any, stage: Stage) -> Backend:
     return Backend(kind=kind, simulated=sim, serial=serial)
 
 
-def _parse_serial(ctx: _Ctx, raw: Any, stage: Stage) -> SerialBackend:
+def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
     p = "backend.serial"
     raw = ctx.mapping(
         raw,
@@ -852,7 +781,7 @@ def parse_stage_config(data: Any, source: str = "<memory>") -> StageConfig:
     ConfigError
         On any invalid or unknown field.
     """
-    ctx = _Ctx(source)
+    ctx = FieldReader(source)
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: expected a YAML mapping with a 'stage' section, got {type(data).__name__}")
     top = ctx.mapping(data, "<top>", ["stage", "backend"], required=["stage"])

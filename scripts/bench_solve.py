@@ -117,7 +117,7 @@ def bench_size(afm, n, args):
     model, fit_s = build_model(afm, n, args.seed, args.fit, args.fit_time)
     eafm = EAFM(afm, model)
     t0 = time.perf_counter()
-    ctl = OptimalController(eafm, ControllerSettings())
+    ctl = OptimalController(eafm, ControllerSettings(grid=args.controller_grid, n_polish=args.n_polish))
     build_s = time.perf_counter() - t0
     base = AFMController(afm)
     sp = ScipyProblem(ctl)
@@ -196,6 +196,10 @@ def main(argv=None):
     p.add_argument("--fit", choices=("fixed", "vhgpr"), default="fixed",
                    help="residual model: planted noise with fixed hyperparameters, or a VHGPR fit")
     p.add_argument("--fit-time", type=float, default=300.0, help="VHGPR fit budget per size (s)")
+    p.add_argument("--controller-grid", type=int, default=ControllerSettings().grid,
+                   help="the controller's seeding grid per null-space axis (its setting 'grid')")
+    p.add_argument("--n-polish", type=int, default=ControllerSettings().n_polish,
+                   help="grid minima the controller polishes with IPOPT (its setting 'n_polish')")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     warnings.filterwarnings("ignore", category=UserWarning, module="scipy")

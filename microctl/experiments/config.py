@@ -11,14 +11,14 @@ backend is opened. See ``docs/experiments.md`` for the reference.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 from microctl.config import StageConfig, load_stage_config, load_yaml
 from microctl.controller import R_E_SETTINGS, ControllerSettings
 from microctl.errors import ConfigError
+from microctl.fields import FieldReader
 
 #: Controllers an experiment can compare.
 CONTROLLERS = ("afm", "eafm", "oracle")
@@ -231,67 +231,10 @@ class ExperimentConfig:
 # --------------------------------------------------------------------------------------
 
 
-class _Checker:
-    """Typed field access with messages naming the file and the field path."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, path: str, message: str) -> ConfigError:
-        return ConfigError(f"{self.source}: {path}: {message}")
-
-    def mapping(self, value: Any, path: str, allowed: Iterable[str], required: Iterable[str] = ()) -> dict:
-        allowed = list(allowed)
-        if value is None:
-            value = {}
-        if not isinstance(value, Mapping):
-            raise self.fail(path, f"expected a mapping with keys {', '.join(allowed)}, got {type(value).__name__}")
-        for key in value:
-            if key not in allowed:
-                raise self.fail(f"{path}.{key}" if path else str(key),
-                                f"unknown key '{key}'; valid keys here: {', '.join(allowed)}")
-        for key in required:
-            if key not in value:
-                raise self.fail(f"{path}.{key}" if path else str(key), "is required")
-        return dict(value)
-
-    def integer(self, value: Any, path: str, lo: int | None = None, hi: int | None = None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(path, f"expected an integer, got {value!r}")
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
-            rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-            raise self.fail(path, f"must be an integer {rng}, got {value!r}")
-        return int(value)
-
-    def number(self, value: Any, path: str, *, positive: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-            raise self.fail(path, f"expected a finite number, got {value!r}")
-        if positive and value <= 0:
-            raise self.fail(path, f"must be > 0, got {value!r}")
-        return float(value)
-
-    def boolean(self, value: Any, path: str) -> bool:
-        if not isinstance(value, bool):
-            raise self.fail(path, f"expected true or false, got {value!r}")
-        return value
-
-    def choice(self, value: Any, path: str, choices: Iterable[str]) -> str:
-        choices = tuple(choices)
-        if not isinstance(value, str) or value not in choices:
-            raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
-        return value
-
-    def numbers(self, value: Any, path: str, n: int | None = None) -> tuple[float, ...]:
-        if not isinstance(value, (list, tuple)) or not value or (n is not None and len(value) != n):
-            want = f"a list of {n} numbers" if n is not None else "a non-empty list of numbers"
-            raise self.fail(path, f"expected {want}, got {value!r}")
-        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
-
-
-def _section(ck: _Checker, raw: Mapping, name: str, cls: type, ints: dict, **kw) -> Any:
+def _section(ck: FieldReader, raw: Mapping, name: str, cls: type, ints: dict, **kw) -> Any:
     """Parse a section whose fields are all integers (given as name -> minimum)."""
     d = cls()
-    sec = ck.mapping(raw.get(name), name, list(ints) + list(kw))
+    sec = ck.mapping(raw.get(name), name, list(ints) + list(kw), none_ok=True)
     vals = {k: ck.integer(sec.get(k, getattr(d, k)), f"{name}.{k}", lo=lo) for k, lo in ints.items()}
     for k, parse in kw.items():
         vals[k] = parse(sec.get(k, getattr(d, k)), f"{name}.{k}")
@@ -315,12 +258,12 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     ConfigError
         Naming the file and the field path; also any error of the stage config it names.
     """
-    ck = _Checker(source)
+    ck = FieldReader(source)
     top = ck.mapping(
         data, "",
         ["stage", "emulate", "controllers", "seeds", "training", "controller", "oracle", "absolute",
          "incremental", "figures"],
-        required=["stage"],
+        required=["stage"], none_ok=True,
     )
     stage_raw = top["stage"]
     if not isinstance(stage_raw, str) or not stage_raw.strip():
@@ -353,12 +296,12 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
 
-    tr = ck.mapping(top.get("training"), "training", list(Training.__dataclass_fields__))
+    tr = ck.mapping(top.get("training"), "training", list(Training.__dataclass_fields__), none_ok=True)
     dt = Training()
     rng_raw = tr.get("refine_target_range_um", None)
     rng = None
     if rng_raw is not None:
-        rng = ck.numbers(rng_raw, "training.refine_target_range_um", 2)
+        rng = ck.vector(rng_raw, "training.refine_target_range_um", 2)
         if rng[0] >= rng[1]:
             raise ck.fail("training.refine_target_range_um", f"lower bound {rng[0]:g} must be below {rng[1]:g}")
     training = Training(
@@ -377,7 +320,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     cs_fields = ["r_e", "grid", "newton_steps", "n_polish", "polish_ratio", "constraint_tol", "ipopt_tol",
                  "max_iter"]
-    cs = ck.mapping(top.get("controller"), "controller", cs_fields)
+    cs = ck.mapping(top.get("controller"), "controller", cs_fields, none_ok=True)
     dc = ControllerSettings()
     try:
         controller = ControllerSettings(
@@ -398,7 +341,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1})
 
-    ab = ck.mapping(top.get("absolute"), "absolute", ["enabled", "points", "trials"])
+    ab = ck.mapping(top.get("absolute"), "absolute", ["enabled", "points", "trials"], none_ok=True)
     da = Absolute()
     absolute = Absolute(
         enabled=ck.boolean(ab.get("enabled", da.enabled), "absolute.enabled"),
@@ -406,11 +349,11 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
         trials=ck.integer(ab.get("trials", da.trials), "absolute.trials", lo=1),
     )
 
-    inc = ck.mapping(top.get("incremental"), "incremental", ["enabled", "targets_um", "trials"])
+    inc = ck.mapping(top.get("incremental"), "incremental", ["enabled", "targets_um", "trials"], none_ok=True)
     di = Incremental()
     incremental = Incremental(
         enabled=ck.boolean(inc.get("enabled", di.enabled), "incremental.enabled"),
-        targets_um=ck.numbers(inc.get("targets_um", list(di.targets_um)), "incremental.targets_um"),
+        targets_um=ck.vector(inc.get("targets_um", list(di.targets_um)), "incremental.targets_um"),
         trials=ck.integer(inc.get("trials", di.trials), "incremental.trials", lo=2),
     )
     if not absolute.enabled and not incremental.enabled:
@@ -426,7 +369,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     )
 
 
-def _check_targets(ck: _Checker, stage_config: StageConfig, targets: tuple[float, ...]) -> None:
+def _check_targets(ck: FieldReader, stage_config: StageConfig, targets: tuple[float, ...]) -> None:
     """Every target inside the AFM's reachable range (checked before any move)."""
     from microctl.afm import AnalyticForwardModel
 

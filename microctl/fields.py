@@ -1,0 +1,121 @@
+"""Typed access to the fields of a parsed YAML document, with messages that name the file,
+the field path (``stage.actuators[2].normal``) and what would be valid.
+
+Shared by the stage config (:mod:`microctl.config`) and the experiment config
+(:mod:`microctl.experiments.config`); every method raises :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, Iterable
+
+from microctl.errors import ConfigError
+
+#: How far from 1 the length of a "unit" vector may be.
+UNIT_TOLERANCE = 1e-6
+
+
+class FieldReader:
+    """Validating reader of one document.
+
+    Parameters
+    ----------
+    source : str
+        The file (or other name) used at the start of every message.
+    """
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, path: str, message: str) -> ConfigError:
+        """The error for field ``path`` (to be raised by the caller)."""
+        return ConfigError(f"{self.source}: {path}: {message}")
+
+    def mapping(self, value: Any, path: str, allowed: Iterable[str], required: Iterable[str] = (), *,
+                none_ok: bool = False) -> dict:
+        """A mapping whose keys are all in ``allowed`` and include ``required``.
+
+        ``none_ok``: an absent section (``None``) reads as an empty mapping.
+        """
+        allowed = list(allowed)
+        if value is None and none_ok:
+            value = {}
+        if not isinstance(value, Mapping):
+            raise self.fail(path, f"expected a mapping with keys {', '.join(allowed)}, got {type(value).__name__}")
+        for key in value:
+            if key not in allowed:
+                raise self.fail(f"{path}.{key}" if path else str(key),
+                                f"unknown key '{key}'; valid keys here: {', '.join(allowed)}")
+        for key in required:
+            if key not in value:
+                raise self.fail(f"{path}.{key}" if path else str(key), "is required")
+        return dict(value)
+
+    def number(self, value: Any, path: str, *, positive: bool = False, nonneg: bool = False) -> float:
+        """A finite number (optionally > 0 or >= 0)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {value!r}")
+        x = float(value)
+        if not math.isfinite(x):
+            raise self.fail(path, f"expected a finite number, got {value!r}")
+        if positive and x <= 0:
+            raise self.fail(path, f"must be > 0, got {value!r}")
+        if nonneg and x < 0:
+            raise self.fail(path, f"must be >= 0, got {value!r}")
+        return x
+
+    def integer(self, value: Any, path: str, *, lo: int | None = None, hi: int | None = None) -> int:
+        """An integer (not a bool), optionally within [lo, hi]."""
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {value!r}")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            rng = f">= {lo}" if hi is None else (f"<= {hi}" if lo is None else f"in [{lo}, {hi}]")
+            raise self.fail(path, f"must be an integer {rng}, got {value!r}")
+        return int(value)
+
+    def string(self, value: Any, path: str, *, blank_ok: bool = False) -> str:
+        """A non-empty string (``blank_ok``: whitespace-only is fine, e.g. a line ending)."""
+        if not isinstance(value, str) or value == "" or (not blank_ok and not value.strip()):
+            raise self.fail(path, f"expected a non-empty string, got {value!r}")
+        return value
+
+    def boolean(self, value: Any, path: str) -> bool:
+        """true or false."""
+        if not isinstance(value, bool):
+            raise self.fail(path, f"expected true or false, got {value!r}")
+        return value
+
+    def choice(self, value: Any, path: str, choices: Iterable[str]) -> str:
+        """One of ``choices``."""
+        choices = tuple(choices)
+        if not isinstance(value, str) or value not in choices:
+            raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
+        return value
+
+    def vector(self, value: Any, path: str, n: int | None = None) -> tuple[float, ...]:
+        """A list of ``n`` finite numbers (any non-empty length when ``n`` is None)."""
+        if not isinstance(value, (list, tuple)) or not value or (n is not None and len(value) != n):
+            if n is None:
+                raise self.fail(path, f"expected a non-empty list of numbers, got {value!r}")
+            got = f"{len(value)} values" if isinstance(value, (list, tuple)) else repr(value)
+            raise self.fail(path, f"expected a list of {n} numbers, got {got}")
+        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+    def unit_vector(self, value: Any, path: str) -> tuple[float, float, float]:
+        """A 3-vector of length 1 (± :data:`UNIT_TOLERANCE`)."""
+        v = self.vector(value, path, 3)
+        norm = math.sqrt(sum(x * x for x in v))
+        if norm == 0.0:
+            raise self.fail(path, "is the zero vector; give a unit vector, e.g. [0, 0, 1]")
+        if abs(norm - 1.0) > UNIT_TOLERANCE:
+            raise self.fail(path, f"has length {norm:.6g}, must be a unit vector (length 1 ± {UNIT_TOLERANCE})")
+        return v  # type: ignore[return-value]
+
+    def interval(self, value: Any, path: str) -> tuple[float, float]:
+        """[lo, hi] with lo < hi."""
+        lo, hi = self.vector(value, path, 2)
+        if lo >= hi:
+            raise self.fail(path, f"lower bound {lo:g} must be below upper bound {hi:g}")
+        return (lo, hi)
