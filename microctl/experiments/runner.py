@@ -209,8 +209,7 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
 def _fit(run: _Run, info: dict, round_: int) -> EAFM:
     tr = run.cfg.training
     rec = run.recorders["training"]
-    rec.writer._fh.flush()
-    log = read_log(rec.path, run.stage_config.stage, min_rows=5)
+    log = read_log(rec.path, run.stage_config.stage, min_rows=5)  # the writer flushed every row
     data = residual_dataset(log, run.afm)
     t0 = time.perf_counter()
     run.say(f"experiment: fitting the VHGPR to {len(data.y)} residuals (round {round_})")
