@@ -321,6 +321,18 @@ class AnalyticForwardModel:
         """The zero state s = [t; q] = 0, shape (n_s,)."""
         return np.zeros(self.n_s)
 
+    def dynamic_corrections_note(self) -> str | None:
+        """A one-line note when ``stage.corrections`` holds causes this AFM does not model.
+
+        Backlash, contact loss and drift need the state, the contact physics or time; the
+        AFM (and so the EAFM graph and the controller) leaves them to the GP, which learns
+        them from the residual. ``None`` when there are none.
+        """
+        if not self.dynamic_corrections:
+            return None
+        return (f"stage.corrections has {', '.join(self.dynamic_corrections)}, which the AFM graph does not "
+                "model; the GP learns it from the residual (microctl.extended models it through the physics)")
+
     def without_corrections(self) -> "AnalyticForwardModel":
         """The CAD AFM of the same stage (corrections dropped)."""
         return AnalyticForwardModel(replace(self.stage, corrections=Effects()))

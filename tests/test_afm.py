@@ -145,3 +145,16 @@ def test_tool_offset_correction(table1):
     base = AnalyticForwardModel(table1.stage)
     u = np.array([5.0, 0.5, -0.2])
     assert afm.t_of(u) - base.t_of(u) == pytest.approx(0.5 * -2.0 - (-0.2) * 1.5, abs=1e-12)
+
+
+def test_dynamic_corrections_are_named_not_dropped(table1):
+    """Backlash/contact loss/drift corrections are outside the AFM graph: the model says so."""
+    from dataclasses import replace
+
+    from microctl.config import Backlash, Drift
+
+    assert AnalyticForwardModel(table1.stage).dynamic_corrections_note() is None
+    corr = Effects(backlash=(Backlash(actuator=2, lag_um=0.2),), drift=Drift(rate_um_per_s=1e-3))
+    afm = AnalyticForwardModel(replace(table1.stage, corrections=corr))
+    assert afm.dynamic_corrections == ("backlash", "drift")
+    assert "backlash, drift, which the AFM graph does not model" in afm.dynamic_corrections_note()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
@@ -57,6 +58,9 @@ def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
 def _run(args: argparse.Namespace) -> int:
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
+    note = afm.dynamic_corrections_note()
+    if note:
+        print(f"solve: note: {note}", file=sys.stderr)
     state = parse_state(args.state, afm)
     if not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")

@@ -41,6 +41,9 @@ def _run(args: argparse.Namespace) -> int:
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
     data = residual_dataset(log, afm)
+    note = afm.dynamic_corrections_note()
+    if note:
+        print(f"train: note: {note}", file=sys.stderr)
     t0 = time.perf_counter()
     if not args.quiet and sys.stderr.isatty():
         print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
