@@ -22,7 +22,8 @@ from microctl.cli import main
 from microctl.errors import ConfigError, DataError, MicroctlError
 from microctl.vhgpr import FORMAT_VERSION, VHGPR, FittedVHGPR, VHGPRPrediction, ard_se
 
-MCYCLE = Path("/work/shared/data/mcycle.csv")
+# shared/ sits beside the repository (here and in CI): the motorcycle benchmark data
+MCYCLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mcycle.csv"
 
 
 def _mcycle() -> tuple[np.ndarray, np.ndarray]:
