@@ -22,7 +22,7 @@ import numpy as np
 from microctl.backends.base import Measurement
 from microctl.config import Stage
 from microctl.errors import DataError
-from microctl.tabular import read_table
+from microctl.tabular import parse_number, read_table
 
 
 def pose_columns(stage: Stage) -> list[str]:
@@ -176,15 +176,7 @@ class MeasurementLog:
         """An extra column as floats, shape (n,) (DataError naming the row if not numeric)."""
         if column not in self.extra:
             raise DataError(f"{self.path}: missing column '{column}' (extra columns: {', '.join(self.extra)})")
-        out = np.empty(len(self))
-        for k, text in enumerate(self.extra[column]):
-            try:
-                out[k] = float(text)
-            except ValueError:
-                raise DataError(f"{self.path}: row {k + 2}, column '{column}': '{text}' is not a number") from None
-            if not np.isfinite(out[k]):
-                raise DataError(f"{self.path}: row {k + 2}, column '{column}': value '{text}' is not finite")
-        return out
+        return np.array([parse_number(text, self.path, k + 2, column) for k, text in enumerate(self.extra[column])])
 
 
 def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLog:

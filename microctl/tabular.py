@@ -17,6 +17,18 @@ import numpy as np
 from microctl.errors import DataError
 
 
+def parse_number(text: str, path: Path | str, line: int, column: str) -> float:
+    """One CSV field as a finite float, else a DataError naming file, row (line) and column."""
+    text = text.strip()
+    try:
+        value = float(text)
+    except ValueError:
+        raise DataError(f"{path}: row {line}, column '{column}': '{text}' is not a number") from None
+    if not math.isfinite(value):
+        raise DataError(f"{path}: row {line}, column '{column}': value '{text}' is not finite")
+    return value
+
+
 @dataclass(frozen=True)
 class Table:
     """A CSV file read as text, with its header.
@@ -52,19 +64,7 @@ class Table:
                 f"{self.path}: missing required column '{column}' (columns present: {', '.join(self.header)})"
             )
         j = self.header.index(column)
-        out = np.empty(len(self.rows))
-        for k, row in enumerate(self.rows):
-            text = row[j].strip()
-            try:
-                value = float(text)
-            except ValueError:
-                raise DataError(
-                    f"{self.path}: row {k + 2}, column '{column}': '{text}' is not a number"
-                ) from None
-            if not math.isfinite(value):
-                raise DataError(f"{self.path}: row {k + 2}, column '{column}': value '{text}' is not finite")
-            out[k] = value
-        return out
+        return np.array([parse_number(row[j], self.path, k + 2, column) for k, row in enumerate(self.rows)])
 
     def numeric_columns(self, columns: Sequence[str]) -> np.ndarray:
         """Several columns as a float array, shape (n_rows, len(columns))."""
