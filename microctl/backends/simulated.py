@@ -23,14 +23,13 @@ import numpy as np
 from microctl.backends.base import Measurement, StageBackend
 from microctl.config import StageConfig
 from microctl.errors import BackendError
+from microctl.extended import ExtendedForwardModel, ExtendedPrediction
 from microctl.physics import (
     actual_positions,
     ball_heights,
-    contact_model,
     directions_from_steps,
     sensor_reading,
     solve_equilibrium,
-    tool_sensitivity,
 )
 
 
@@ -59,7 +58,9 @@ class SimulatedStage(StageBackend):
         act_seq, gauge_seq = np.random.SeedSequence(self.seed).spawn(2)
         self._rng_act = np.random.default_rng(act_seq)
         self._rng_gauge = np.random.default_rng(gauge_seq)
-        self.model = contact_model(config.stage, sim.effects)
+        # the noise-free truth: the stage with the simulated effects through the physics
+        self._truth = ExtendedForwardModel(config.stage, sim.effects)
+        self.model = self._truth.model
         n = config.stage.n_act
         self._q_cmd = np.zeros(n)
         self._direction = np.ones(n)  # the zero state is approached "up"
@@ -103,15 +104,15 @@ class SimulatedStage(StageBackend):
         return Measurement(t_um=t, q_um=q, u=u, time_s=self.time_s)
 
     # ---- oracle --------------------------------------------------------------------
-    def _oracle(self, s: np.ndarray, u: np.ndarray):
+    def _oracle(self, s: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ExtendedPrediction]:
+        """Δq and the noise-free prediction of the next move from state s (Δq_i = 0 keeps the
+        stage's current backlash direction), at the time it would settle."""
         s = np.asarray(s, dtype=float).reshape(-1)
-        u2 = np.atleast_2d(np.asarray(u, dtype=float))
-        q = u2 @ self.K.T
+        q = np.atleast_2d(np.asarray(u, dtype=float)) @ self.K.T
         dq = q - s[1:]
         direction = np.where(dq > 0, 1.0, np.where(dq < 0, -1.0, self._direction))
-        q_act = actual_positions(self.model, q, direction)
-        p, active = solve_equilibrium(self.model, ball_heights(self.model, q_act))
-        return u2, dq, p, active
+        pred = self._truth.predict_q(q, direction=direction, time_s=self.time_s + self.settings.move_time_s)
+        return dq, pred
 
     def true_mean(self, s: np.ndarray, u: np.ndarray) -> np.ndarray | float:
         """Noise-free expected reading of the next move from state s.
@@ -128,9 +129,8 @@ class SimulatedStage(StageBackend):
         float or ndarray (m,)
             At the time the next move would settle (clock + move_time_s).
         """
-        u2, _, p, _ = self._oracle(s, u)
-        out = sensor_reading(self.model, p, self.time_s + self.settings.move_time_s)
-        return float(out[0]) if np.ndim(u) == 1 else out
+        _, pred = self._oracle(s, u)
+        return float(pred.t[0]) if np.ndim(u) == 1 else pred.t
 
     def true_var(self, s: np.ndarray, u: np.ndarray) -> np.ndarray | float:
         """Variance of the next reading from state s (µm²), shape () or (m,).
@@ -138,8 +138,8 @@ class SimulatedStage(StageBackend):
         Driver accuracy and friction (std_i |Δq_i|) propagated linearly through the contact
         equilibrium (:func:`microctl.physics.tool_sensitivity`), plus the gauge noise.
         """
-        u2, dq, p, active = self._oracle(s, u)
-        J = tool_sensitivity(self.model, p, active)
+        dq, pred = self._oracle(s, u)
+        J = pred.sensitivity
         var_q = self.settings.driver_accuracy_um**2 + (self.model.friction_std_per_um * np.abs(dq)) ** 2
         out = np.sum(J * J * var_q, axis=1) + self.settings.gauge_noise_std_um**2
         return float(out[0]) if np.ndim(u) == 1 else out
