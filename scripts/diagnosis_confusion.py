@@ -29,7 +29,7 @@ import numpy as np
 
 from microctl.config import Effects, load_stage_config
 from microctl.diagnosis.pipeline import run_diagnosis
-from microctl.diagnosis.plant import PLANTABLE, compression_um, random_cause, simulate, with_noise_of
+from microctl.diagnosis.plant import PLANTABLE, compression_um, parameter_bar, random_cause, simulate, with_noise_of
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,12 +78,7 @@ def params_ok(entry: dict, truth: dict) -> bool | None:
         se = entry.get("stderr", {}).get(name)
         if est is None or se is None:
             return None
-        if name in ("gain", "scale"):
-            bar = 0.1 * abs(true - 1.0)
-        elif name.endswith("_mm"):
-            bar = 0.2
-        else:
-            bar = 0.1 * abs(true)
+        bar = parameter_bar(name, true)
         if 3 * se > bar:
             return None
         ok &= abs(est - true) <= bar

@@ -14,7 +14,7 @@ import pytest
 from microctl.config import ActuatorFriction, ActuatorGain, Effects, load_stage_config
 from microctl.diagnosis.pipeline import run_diagnosis
 from microctl.diagnosis.plant import compression_um as _compression
-from microctl.diagnosis.plant import random_cause, simulate, with_noise_of
+from microctl.diagnosis.plant import parameter_bar, random_cause, simulate, with_noise_of
 
 from conftest import CONFIGS
 
@@ -49,12 +49,7 @@ def _check_params(entry: dict, truth: dict) -> None:
         # drift ± 5e-5 µm/s on 1e-3..4e-3), so the bars of the brief are ≥ 5 σ wide and also
         # every estimate must lie within 5 σ (the model is the simulator's own physics).
         assert abs(est - true) <= 5 * se + 1e-9, f"{name}: {est} vs planted {true} (± {se})"
-        if name in ("gain", "scale"):
-            bar = 0.1 * abs(true - 1.0)
-        elif name.endswith("_mm"):
-            bar = 0.2
-        else:
-            bar = 0.1 * abs(true)
+        bar = parameter_bar(name, true)
         # the bar is asserted where this data resolves it (3 σ ≤ bar), i.e. "when identifiable";
         # with sim_paper.yaml's noise that is every case here
         if 3 * se <= bar:

@@ -126,6 +126,16 @@ def with_noise_of(config: StageConfig, noise_from: StageConfig) -> StageConfig:
     return replace(config, backend=replace(config.backend, simulated=sim))
 
 
+def parameter_bar(name: str, true: float) -> float:
+    """The issue's tolerance for a recovered parameter: 10 % of the deviation from healthy for
+    gain-like ones (``gain``, ``scale``), 0.2 mm for offsets (``*_mm``), else 10 % of the value."""
+    if name in ("gain", "scale"):
+        return 0.1 * abs(true - 1.0)
+    if name.endswith("_mm"):
+        return 0.2
+    return 0.1 * abs(true)
+
+
 def compression_um(config: StageConfig) -> float:
     """Total contact compression the preload provides, µm (preload / contact stiffness)."""
     ph = config.stage.physics
