@@ -24,22 +24,26 @@ import json
 import math
 import time
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
 from scipy.linalg import lapack
-from scipy.optimize import minimize
+from scipy.optimize import minimize, nnls
 
 from microctl.blas import single_thread_blas
 from microctl.errors import ConfigError, DataError, MicroctlError
+from microctl.kernels import Kernel, KernelSpec
+from microctl.noise_prior import LogVarianceMean, NoiseFeatures
 
 __all__ = ["FORMAT_VERSION", "VHGPR", "FittedVHGPR", "VHGPRPrediction", "ard_se"]
 
-#: Version of the ``.npz`` model file written by :meth:`FittedVHGPR.save`.
-FORMAT_VERSION = 1
+#: Version of the ``.npz`` model file written by :meth:`FittedVHGPR.save` (2: optional
+#: linear kernel part of f and parametric prior mean of g; version 1 files read unchanged).
+FORMAT_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -52,6 +56,8 @@ _BOUNDS = {
     "log_signal_var": (-12.0, 5.0),
     "log_bias_var": (-12.0, 5.0),
     "mu0": (-20.0, 5.0),
+    "log_linear_var": (-15.0, 5.0),
+    "log_feature_coef": (-30.0, 5.0),  # c_j of g's parametric prior mean (noise_prior eq. 1)
     "log_noise_var": (-20.0, 2.0),  # homoscedastic initialisation only
 }
 
@@ -83,7 +89,8 @@ def ard_se(
     """Squared-exponential kernel with one lengthscale per input (ARD), plus an optional bias.
 
     ``k(x, x') = exp(log_signal_var) * exp(-0.5 * sum_d ((x_d - x'_d) / exp(log_lengthscales_d))**2)
-    + (exp(log_bias_var) if log_bias_var is not None else 0)``
+    + (exp(log_bias_var) if log_bias_var is not None else 0)``; a thin wrapper of
+    :class:`microctl.kernels.Kernel`, the one implementation.
 
     Parameters
     ----------
@@ -97,54 +104,9 @@ def ard_se(
     -------
     ndarray, shape (m, n)
     """
-    K = _se_part(Xa, Xb, np.asarray(log_lengthscales, dtype=float), float(log_signal_var))
-    if log_bias_var is not None:
-        K += math.exp(float(log_bias_var))
-    return K
-
-
-def _se_part(Xa: np.ndarray, Xb: np.ndarray, log_ls: np.ndarray, log_sf2: float) -> np.ndarray:
-    """The SE part of :func:`ard_se`, shape (m, n), by |a|^2 + |b|^2 - 2 a.b (clipped at 0)."""
-    inv_ls = np.exp(-log_ls)
-    Za = np.asarray(Xa, dtype=float) * inv_ls
-    Zb = np.asarray(Xb, dtype=float) * inv_ls
-    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + np.einsum("ij,ij->i", Zb, Zb)[None, :]
-    sq -= 2.0 * (Za @ Zb.T)
-    np.maximum(sq, 0.0, out=sq)
-    sq *= -0.5
-    np.exp(sq, out=sq)
-    sq *= math.exp(log_sf2)
-    return sq
-
-
-def _kernel_grads(G: np.ndarray, Kse: np.ndarray, X: np.ndarray, log_ls: np.ndarray, bias: float | None) -> np.ndarray:
-    """Traces ``sum_ij G_ij dK_ij/dtheta`` for theta = (log lengthscales, log signal var[, log bias var]).
-
-    With Z = X / lengthscales, dK/dlog l_d = Kse * (z_id - z_jd)^2 and
-    sum_ij H_ij (z_id - z_jd)^2 = 2 sum_i z_id^2 (H 1)_i - 2 z_d^T H z_d for symmetric
-    H = G * Kse, so each trace costs one product H @ Z (no (n, n, d) temporaries).
-
-    Parameters
-    ----------
-    G : ndarray, shape (n, n), symmetric
-    Kse : ndarray, shape (n, n), the SE part of the kernel
-    X : ndarray, shape (n, d)
-    log_ls : ndarray, shape (d,)
-    bias : float or None, the bias variance exp(log_bias_var)
-
-    Returns
-    -------
-    ndarray, shape (d + 1 [+ 1],)
-    """
-    H = G * Kse
-    Z = X * np.exp(-log_ls)
-    h = H.sum(axis=1)
-    HZ = H @ Z
-    g_ls = 2.0 * (Z * Z).T @ h - 2.0 * np.einsum("ij,ij->j", Z, HZ)
-    out = [g_ls, [h.sum()]]
-    if bias is not None:
-        out.append([bias * G.sum()])
-    return np.concatenate(out)
+    k = Kernel(np.asarray(log_lengthscales, dtype=float), float(log_signal_var),
+               None if log_bias_var is None else float(log_bias_var))
+    return k.matrix(Xa, Xb)
 
 
 # --------------------------------------------------------------------------- linear algebra
@@ -189,57 +151,92 @@ def _chol_inverse(L: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _Layout:
-    """Where each block of parameters sits in the flat optimisation vector."""
+    """Where each block of parameters sits in the flat optimisation vector.
+
+    ``[log lambda (n), f kernel block, g kernel block, log c_0 (= mu0), log c_1..c_p]``: the
+    kernel blocks as :class:`~microctl.kernels.KernelSpec` lays them out, then the prior
+    mean of g (:class:`~microctl.noise_prior.LogVarianceMean`; p = 0 is the constant mu0).
+    """
 
     n: int
-    d: int
-    bias: bool
-
-    @property
-    def n_kernel(self) -> int:
-        return self.d + 1 + int(self.bias)
+    f: KernelSpec
+    g: KernelSpec
+    p: int = 0
+    linear_bounds: tuple[tuple[float, float], ...] | None = None  # [bias, per input]: fixed or free log v
+    se_off: bool = False  # f's SE part switched off (its hyperparameters fixed, signal variance at the floor)
 
     @property
     def f_slice(self) -> slice:
-        return slice(self.n, self.n + self.n_kernel)
+        return slice(self.n, self.n + self.f.size)
 
     @property
     def g_slice(self) -> slice:
-        s = self.n + self.n_kernel
-        return slice(s, s + self.n_kernel)
+        s = self.n + self.f.size
+        return slice(s, s + self.g.size)
+
+    @property
+    def mean_slice(self) -> slice:
+        s = self.n + self.f.size + self.g.size
+        return slice(s, s + 1 + self.p)
 
     @property
     def size(self) -> int:
-        return self.n + 2 * self.n_kernel + 1
-
-    def kernel(self, block: np.ndarray) -> tuple[np.ndarray, float, float | None]:
-        """(log lengthscales, log signal var, log bias var or None) from a kernel block."""
-        return block[: self.d], float(block[self.d]), (float(block[self.d + 1]) if self.bias else None)
+        return self.n + self.f.size + self.g.size + 1 + self.p
 
     def bounds(self) -> list[tuple[float, float]]:
-        kb = [_BOUNDS["log_lengthscale"]] * self.d + [_BOUNDS["log_signal_var"]]
-        if self.bias:
-            kb.append(_BOUNDS["log_bias_var"])
-        return [_BOUNDS["log_lambda"]] * self.n + kb + kb + [_BOUNDS["mu0"]]
+        kb = {k: _BOUNDS[v] for k, v in (("ls", "log_lengthscale"), ("sf2", "log_signal_var"),
+                                          ("bias", "log_bias_var"), ("linear", "log_linear_var"))}
+        fb = self.f.bounds(**kb)
+        if self.f.linear and self.linear_bounds is not None:  # [bias, linear (d)] of an affine trend
+            fb[-self.f.d - 1:] = list(self.linear_bounds)
+        if self.se_off:
+            ls_hi, sf2_lo = _BOUNDS["log_lengthscale"][1], _BOUNDS["log_signal_var"][0]
+            fb[: self.f.d + 1] = [(ls_hi, ls_hi)] * self.f.d + [(sf2_lo, sf2_lo)]
+        return ([_BOUNDS["log_lambda"]] * self.n + fb + self.g.bounds(**kb)
+                + [_BOUNDS["mu0"]] + [_BOUNDS["log_feature_coef"]] * self.p)
+
+
+def _prior_mean(log_c: np.ndarray, Phi: np.ndarray | None) -> tuple[np.ndarray | float, np.ndarray | None]:
+    """Prior mean m of g at the training inputs and dm/dlog c (``noise_prior`` eq. 1).
+
+    Parameters
+    ----------
+    log_c : ndarray, shape (1 + p,)
+    Phi : ndarray, shape (n, p), or None when p = 0
+
+    Returns
+    -------
+    m : float (p = 0) or ndarray, shape (n,)
+    dm : ndarray, shape (n, 1 + p), or None when p = 0 (then dm/dmu0 = 1)
+    """
+    if Phi is None or Phi.shape[1] == 0:
+        return float(log_c[0]), None
+    c = np.exp(log_c)
+    D = np.hstack([np.full((Phi.shape[0], 1), c[0]), Phi * c[1:]])  # c_j phi_j, with phi_0 = 1
+    v = D.sum(axis=1)
+    return np.log(v), D / v[:, None]
 
 
 # --------------------------------------------------------------------------- the bound
 
 
 def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, *, want_grad: bool = True,
-              want_state: bool = False) -> tuple[float, np.ndarray | None, dict | None]:
+              want_state: bool = False, Phi: np.ndarray | None = None
+              ) -> tuple[float, np.ndarray | None, dict | None]:
     """The MV bound F and its gradient with respect to the flat parameter vector.
 
     Parameters
     ----------
     theta : ndarray, shape (layout.size,)
-        ``[log lambda (n), f kernel (d+1[+1]), g kernel (d+1[+1]), mu0]``.
+        See :class:`_Layout`.
     X : ndarray, shape (n, d), standardised inputs
     y : ndarray, shape (n,), standardised outputs
     layout : _Layout
     want_grad : bool
     want_state : bool
         Also return the factors a fitted model stores.
+    Phi : ndarray, shape (n, p), optional
+        Features of g's parametric prior mean at the inputs (None: constant mu0).
 
     Returns
     -------
@@ -255,14 +252,14 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
     n = layout.n
     log_lam = theta[:n]
     lam = np.exp(log_lam)
-    f_ls, f_sf2, f_b = layout.kernel(theta[layout.f_slice])
-    g_ls, g_sf2, g_b = layout.kernel(theta[layout.g_slice])
-    mu0 = float(theta[-1])
+    kf = layout.f.unpack(theta[layout.f_slice])
+    kg = layout.g.unpack(theta[layout.g_slice])
+    m, dm = _prior_mean(theta[layout.mean_slice], Phi)
 
-    Kf_se = _se_part(X, X, f_ls, f_sf2)
-    Kg_se = _se_part(X, X, g_ls, g_sf2)
-    Kf = Kf_se + math.exp(f_b) if f_b is not None else Kf_se
-    Kg = Kg_se + math.exp(g_b) if g_b is not None else Kg_se
+    Kf_se = kf.se(X, X)
+    Kg_se = kg.se(X, X)
+    Kf = kf.matrix(X, X, se=Kf_se)
+    Kg = kg.matrix(X, X, se=Kg_se)
 
     # B = I + Lambda^1/2 K_g Lambda^1/2 [N stable forms]; its eigenvalues are >= 1.
     s = np.sqrt(lam)
@@ -278,7 +275,7 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
     # Lambda^1/2 Sigma Lambda^1/2 = S (I + S)^-1 = I - B^-1 with S = Lambda^1/2 K_g Lambda^1/2).
     sig_diag = (1.0 - np.diag(T)) / lam
     beta = lam - 0.5  # (Lambda - I/2) 1
-    mu = Kg @ beta + mu0  # [N q(g)]
+    mu = Kg @ beta + m  # [N q(g)], with the prior mean m(x) in place of mu0
 
     # R = diag(exp(mu_i - Sigma_ii / 2)) [N bound]
     r = np.exp(mu - 0.5 * sig_diag)
@@ -290,16 +287,16 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
 
     # log N(y | 0, K_f + R); the jitter (if any) is part of the covariance actually used.
     log_lik = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(LA)))) - 0.5 * n * _LOG_2PI
-    # KL(N(mu, Sigma) || N(mu0 1, K_g)) = 1/2 [tr(K_g^-1 Sigma) + (mu - mu0)^T K_g^-1 (mu - mu0)
+    # KL(N(mu, Sigma) || N(m, K_g)) = 1/2 [tr(K_g^-1 Sigma) + (mu - m)^T K_g^-1 (mu - m)
     #     - n + log|K_g| - log|Sigma|] with tr(K_g^-1 Sigma) = tr(B^-1),
-    # (mu - mu0)^T K_g^-1 (mu - mu0) = beta^T K_g beta, log|K_g| - log|Sigma| = log|B|.
-    kl = 0.5 * (float(np.trace(T)) + float(beta @ (mu - mu0)) - n + logdet_B)
+    # (mu - m)^T K_g^-1 (mu - m) = beta^T K_g beta, log|K_g| - log|Sigma| = log|B|.
+    kl = 0.5 * (float(np.trace(T)) + float(beta @ (mu - m)) - n + logdet_B)
     F = log_lik - kl - 0.25 * float(np.sum(sig_diag))
 
     grad = None
     if want_grad:
         # dF/dR_ii = (alpha_i^2 - [A^-1]_ii)/2, so with w = r * that:
-        # dF/dmu = w - beta =: u (the -beta from dKL/dmu = K_g^-1 (mu - mu0) = beta), and
+        # dF/dmu = w - beta =: u (the -beta from dKL/dmu = K_g^-1 (mu - m) = beta), and
         # dF/dSigma_ii = -w_i/2 + lambda_i/2 - 1/4 = -u_i/2 (dKL/dSigma = (K_g^-1 - Sigma^-1)/2 = -Lambda/2).
         w = 0.5 * (alpha * alpha - np.diag(Ainv)) * r
         u = w - beta
@@ -316,11 +313,11 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
         # f hyperparameters: d log N / dtheta = tr(Gf dK_f/dtheta), Gf = (alpha alpha^T - A^-1)/2.
         Gf = np.outer(0.5 * alpha, alpha)
         Gf -= 0.5 * Ainv
-        g_f = _kernel_grads(Gf, Kf_se, X, f_ls, math.exp(f_b) if f_b is not None else None)
+        g_f = kf.grad_traces(Gf, Kf_se, X)
         del Gf
 
-        # g hyperparameters: dF = tr(Gg dK_g) with, for fixed Lambda and mu0,
-        #  via mu = K_g beta + mu0:            sym(u beta^T)
+        # g hyperparameters: dF = tr(Gg dK_g) with, for fixed Lambda and m,
+        #  via mu = K_g beta + m:              sym(u beta^T)
         #  via Sigma, dSigma = M^T dK_g M with M = (I + Lambda K_g)^-1 = Lambda^1/2 B^-1 Lambda^-1/2:
         #                                      M C M^T, C = diag(-u/2)
         #  directly through KL's K_g:          -1/2 (K_g^-1 - K_g^-1 Sigma K_g^-1 - beta beta^T)
@@ -333,11 +330,13 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
         a = 0.5 * u + 0.25 * beta  # sym(u beta^T) + beta beta^T / 2 = a beta^T + beta a^T
         Gg += np.outer(a, beta)
         Gg += np.outer(beta, a)
-        g_g = _kernel_grads(Gg, Kg_se, X, g_ls, math.exp(g_b) if g_b is not None else None)
+        g_g = kg.grad_traces(Gg, Kg_se, X)
         del Gg
 
-        # mu0 enters only through mu (KL depends on mu - mu0 = K_g beta): dF/dmu0 = sum(w).
-        grad = np.concatenate([g_lam, g_f, g_g, [float(np.sum(w))]])
+        # The prior mean m enters only through mu (KL depends on mu - m = K_g beta):
+        # dF/dm_i = w_i, so dF/dlog c = dm^T w (dF/dmu0 = sum(w) for the constant mean).
+        g_m = np.array([float(np.sum(w))]) if dm is None else dm.T @ w
+        grad = np.concatenate([g_lam, g_f, g_g, g_m])
 
     state = None
     if want_state:
@@ -350,56 +349,100 @@ def _mv_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: _Layout, 
             "jitter": jitter,
             "mu": mu,
             "sigma_diag": sig_diag,
+            "r": r,
+            "A_inv": Ainv,
         }
     return F, grad, state
+
+
+def _mean_coef_covariance(state: dict, log_c: np.ndarray, Phi: np.ndarray | None) -> np.ndarray:
+    """Laplace covariance of c = (c_0, .., c_p) of g's prior mean (``noise_prior`` eq. 1).
+
+    The Gaussian likelihood ``y ~ N(0, K_f + R)`` with ``R_ii = r_i`` and ``dr_i/dc_j =
+    r_i J_ij``, ``J_ij = dm_i/dc_j = phi_ij / exp(m_i)`` (phi_0 = 1), has Fisher information
+    ``I_jk = 1/2 tr(A^-1 dA_j A^-1 dA_k) = 1/2 sum_il P_il^2 r_i r_l J_ij J_lk`` with
+    ``P = A^-1`` (the variational posterior of g held fixed). The covariance is taken in c
+    itself, not in log c: a friction coefficient can be zero, and its uncertainty then has
+    a scale of its own (log c would tie it to the estimate). A weak Gaussian prior, under
+    which each term ``c_j mean(phi_j)`` has standard deviation 1 (the output's variance in
+    standardised units), keeps a feature the data never exercised uncertain.
+
+    Returns
+    -------
+    ndarray, shape (1 + p, 1 + p)
+    """
+    r = state["r"]
+    P = state["A_inv"]
+    M = P * P * np.outer(r, r)  # tr(P D_j P D_k) = sum_il P_il^2 r_i r_l J_ij J_lk, D_j = diag(r J_:j)
+    c = np.exp(log_c)
+    D = np.ones((r.size, 1)) if Phi is None or Phi.shape[1] == 0 else np.hstack([np.ones((r.size, 1)), Phi])
+    J = D / (D @ c)[:, None]
+    info = 0.5 * J.T @ M @ J
+    info[np.diag_indices_from(info)] += np.mean(D, axis=0) ** 2  # prior: c_j mean(phi_j) ~ N(0, 1)
+    return np.linalg.inv(info)
 
 
 # --------------------------------------------------------------------------- homoscedastic GP
 
 
-def _gp_loglik(theta: np.ndarray, X: np.ndarray, y: np.ndarray, d: int, bias: bool) -> tuple[float, np.ndarray]:
+def _gp_loglik(theta: np.ndarray, X: np.ndarray, y: np.ndarray, spec: KernelSpec,
+               want_alpha: bool = False) -> tuple[float, np.ndarray] | tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Log marginal likelihood of a homoscedastic GP and its gradient.
 
-    ``theta = [log lengthscales (d), log signal var, (log bias var), log noise var]``.
+    ``theta = [kernel block (spec.size), log noise var]``. With ``want_alpha`` also
+    ``alpha = A^-1 y`` and ``diag(A^-1)`` (for leave-one-out residuals ``alpha / diag``).
     """
     n = X.shape[0]
-    ls, sf2 = theta[:d], float(theta[d])
-    lb = float(theta[d + 1]) if bias else None
+    k = spec.unpack(theta[:-1])
     sn2 = math.exp(float(theta[-1]))
-    Kse = _se_part(X, X, ls, sf2)
-    A = Kse + math.exp(lb) if lb is not None else Kse.copy()
+    Kse = k.se(X, X)
+    A = k.matrix(X, X, se=Kse)
     A[np.diag_indices(n)] += sn2
     L, _ = _chol(A, what="homoscedastic GP covariance")
     Ainv = _chol_inverse(L)
     alpha = Ainv @ y
     ll = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * n * _LOG_2PI
     G = np.outer(0.5 * alpha, alpha) - 0.5 * Ainv
-    gk = _kernel_grads(G, Kse, X, ls, math.exp(lb) if lb is not None else None)
-    return ll, np.concatenate([gk, [sn2 * float(np.trace(G))]])
+    grad = np.concatenate([k.grad_traces(G, Kse, X), [sn2 * float(np.trace(G))]])
+    if want_alpha:
+        return ll, grad, alpha, np.diag(Ainv).copy()
+    return ll, grad
 
 
-def _fit_homoscedastic(X: np.ndarray, y: np.ndarray, bias: bool, rng: np.random.Generator) -> np.ndarray:
+def _fit_homoscedastic(X: np.ndarray, y: np.ndarray, spec: KernelSpec, rng: np.random.Generator,
+                       linear_bounds: tuple[tuple[float, float], ...] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Maximum-likelihood homoscedastic GP on (a random subset of at most 400 of) the data.
 
-    Returns ``[log lengthscales (d), log signal var, (log bias var), log noise var]``.
+    Returns
+    -------
+    theta : ndarray, shape (spec.size + 1,)
+        ``[kernel block, log noise var]``.
+    loo : ndarray, shape (m,)
+        Leave-one-out residuals of the points used (``alpha_i / [A^-1]_ii``).
+    idx : ndarray, shape (m,)
+        Which rows of X were used.
     """
     n, d = X.shape
+    idx = np.arange(n)
     if n > _INIT_SUBSET:
-        idx = rng.choice(n, _INIT_SUBSET, replace=False)
+        idx = np.sort(rng.choice(n, _INIT_SUBSET, replace=False))
         X, y = X[idx], y[idx]
-    bounds = [_BOUNDS["log_lengthscale"]] * d + [_BOUNDS["log_signal_var"]]
-    if bias:
-        bounds.append(_BOUNDS["log_bias_var"])
-    bounds.append(_BOUNDS["log_noise_var"])
+    bounds = spec.bounds(_BOUNDS["log_lengthscale"], _BOUNDS["log_signal_var"], _BOUNDS["log_bias_var"],
+                         _BOUNDS["log_linear_var"]) + [_BOUNDS["log_noise_var"]]
+    if spec.linear and linear_bounds is not None:  # [bias, linear (d)] of an affine trend
+        bounds[spec.size - spec.d - 1: spec.size] = list(linear_bounds)
     best = None
     # Two starts: "smooth, little noise" and "rough, more noise" (standardised units).
     for ls0, sn0 in ((0.0, -2.0), (-1.5, -1.0)):
-        x0 = np.concatenate([np.full(d, ls0), [0.0], [-4.0] if bias else [], [sn0]])
+        x0 = np.concatenate([np.full(d, ls0), [0.0], [-4.0] if spec.bias else [],
+                             np.full(d, -2.0) if spec.linear else [], [sn0]])
+        x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
 
         def fun(t: np.ndarray) -> tuple[float, np.ndarray]:
             try:
                 with np.errstate(all="ignore"):
-                    ll, g = _gp_loglik(t, X, y, d, bias)
+                    ll, g = _gp_loglik(t, X, y, spec)
             except np.linalg.LinAlgError:
                 return 1e10, np.zeros_like(t)
             if not (np.isfinite(ll) and np.all(np.isfinite(g))):
@@ -411,7 +454,31 @@ def _fit_homoscedastic(X: np.ndarray, y: np.ndarray, bias: bool, rng: np.random.
             best = res
     if best is None or best.fun >= 1e10:
         raise MicroctlError("VHGPR: the homoscedastic GP that initialises the fit failed on these data")
-    return np.asarray(best.x, dtype=float)
+    theta = np.asarray(best.x, dtype=float)
+    with np.errstate(all="ignore"):
+        _, _, alpha, adiag = _gp_loglik(theta, X, y, spec, want_alpha=True)
+    return theta, alpha / adiag, idx
+
+
+def _init_mean_coef(loo: np.ndarray, Phi: np.ndarray | None, log_noise: float) -> np.ndarray:
+    """Starting log c of g's prior mean: non-negative least squares of the squared
+    leave-one-out residuals on ``[1, phi]`` (``noise_prior`` eq. 1), floored.
+
+    Returns
+    -------
+    ndarray, shape (1 + p,)
+    """
+    if Phi is None or Phi.shape[1] == 0:
+        return np.array([log_noise])
+    D = np.hstack([np.ones((Phi.shape[0], 1)), Phi])
+    scale = np.maximum(np.sqrt(np.mean(D * D, axis=0)), 1e-12)
+    coef, _ = nnls(D / scale, loo * loo)
+    coef = coef / scale
+    total = float(np.mean(loo * loo))
+    c0 = max(coef[0], 0.05 * total)
+    # a feature NNLS drops starts at a small share of the variance it could carry
+    cj = np.maximum(coef[1:], 1e-3 * total / np.maximum(np.mean(Phi, axis=0), 1e-12))
+    return np.log(np.concatenate([[c0], cj]))
 
 
 # --------------------------------------------------------------------------- fitted model and prediction
@@ -451,6 +518,9 @@ _ARRAY_FIELDS = (
 )
 _FLOAT_FIELDS = ("y_mean", "y_scale", "f_log_signal_var", "g_log_signal_var", "g_mu0", "bound")
 _OPTIONAL_FLOAT_FIELDS = ("f_log_bias_var", "g_log_bias_var")
+# Optional arrays (format 2): absent = the part is not used. Shapes checked at load.
+_OPTIONAL_ARRAY_FIELDS = ("f_log_linear_vars", "g_feature_matrix", "g_feature_offset", "g_log_feature_coef",
+                          "g_mean_coef_cov")
 
 
 @dataclass(frozen=True, eq=False)
@@ -493,9 +563,17 @@ class FittedVHGPR:
         Output column name, if known.
     info : dict
         Fit diagnostics: jitter, restarts tried/failed, iterations, time.
-    mean_coef : ndarray, shape (d,), or None
-        Coefficients of the linear prior mean of f in standardised units
-        (``m(x) = xs · mean_coef``, added to ``a*``); None for the constant prior mean.
+    f_log_linear_vars : ndarray, shape (d,), or None
+        ARD linear part of f's kernel (:mod:`microctl.kernels`); None when not used.
+    g_feature_matrix, g_feature_offset : ndarray, shapes (p, d) and (p,), or None
+        Features of g's parametric prior mean (:mod:`microctl.noise_prior` eq. 1) in
+        standardised units; None: the constant prior mean ``g_mu0``.
+    g_log_feature_coef : ndarray, shape (p,), or None
+        log c_j of that mean (``g_mu0`` is log c_0).
+    g_mean_coef_cov : ndarray, shape (p + 1, p + 1), or None
+        Laplace covariance of (c_0, .., c_p), propagated into g's posterior variance.
+    g_feature_names : tuple of str
+        Names of the features (``dq1``, ...).
     """
 
     x_mean: np.ndarray
@@ -521,12 +599,52 @@ class FittedVHGPR:
     x_names: tuple[str, ...] = ()
     y_name: str = ""
     info: dict = field(default_factory=dict)
-    mean_coef: np.ndarray | None = None
+    f_log_linear_vars: np.ndarray | None = None
+    g_feature_matrix: np.ndarray | None = None
+    g_feature_offset: np.ndarray | None = None
+    g_log_feature_coef: np.ndarray | None = None
+    g_mean_coef_cov: np.ndarray | None = None
+    g_feature_names: tuple[str, ...] = ()
 
     @property
     def n_inputs(self) -> int:
         """Number of input dimensions d."""
         return int(self.X.shape[1])
+
+    @property
+    def f_kernel(self) -> Kernel:
+        """The kernel of f (:class:`~microctl.kernels.Kernel`)."""
+        return Kernel(self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var, self.f_log_linear_vars)
+
+    @property
+    def g_kernel(self) -> Kernel:
+        """The kernel of g."""
+        return Kernel(self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var)
+
+    @property
+    def g_prior_mean(self) -> LogVarianceMean:
+        """The prior mean of g (constant ``g_mu0``, or :mod:`microctl.noise_prior` eq. 1)."""
+        d = self.n_inputs
+        if self.g_feature_matrix is None:
+            return LogVarianceMean(np.zeros((0, d)), np.zeros(0), self.g_mu0, np.zeros(0), self.g_mean_coef_cov)
+        return LogVarianceMean(self.g_feature_matrix, self.g_feature_offset, self.g_mu0, self.g_log_feature_coef,
+                               self.g_mean_coef_cov)
+
+    def noise_parameter_variance(self, X: Any) -> np.ndarray:
+        """Variance of g's parametric prior mean at the rows of X (``noise_prior`` eq. 2), shape (m,),
+        from the covariance kept in ``info`` whether or not it is propagated into g's variance
+        (zeros for the paper's constant prior mean)."""
+        X = self._check_X(X)
+        params = self.info.get("noise_parameters") or {}
+        if self.g_feature_matrix is None or "c_cov" not in params:
+            return np.zeros(X.shape[0])
+        gm = replace(self.g_prior_mean, coef_cov=np.asarray(params["c_cov"], dtype=float))
+        return gm.variance((X - self.x_mean) / self.x_scale)
+
+    @property
+    def noise_model(self) -> str:
+        """``"physical"`` when g has a parametric prior mean, else ``"hgp"`` (the paper's)."""
+        return "physical" if self.g_feature_matrix is not None else "hgp"
 
     def _check_X(self, X: Any) -> np.ndarray:
         X = _as_float_array(X, "X")
@@ -557,25 +675,23 @@ class FittedVHGPR:
         c2 = np.empty(m)
         mu = np.empty(m)
         s2 = np.empty(m)
-        kff = math.exp(self.f_log_signal_var) + (math.exp(self.f_log_bias_var) if self.f_log_bias_var is not None else 0.0)
-        kgg = math.exp(self.g_log_signal_var) + (math.exp(self.g_log_bias_var) if self.g_log_bias_var is not None else 0.0)
+        kf, kg, gm = self.f_kernel, self.g_kernel, self.g_prior_mean
         chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
         for start in range(0, m, chunk):
             sl = slice(start, min(m, start + chunk))
-            Kf = ard_se(xs[sl], self.X, self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var)
-            Kg = ard_se(xs[sl], self.X, self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var)
+            Kf = kf.matrix(xs[sl], self.X)
+            Kg = kg.matrix(xs[sl], self.X)
             # [N prediction] a* = k_f*^T (K_f + R)^-1 y,  c*^2 = k_f** - ||f_chol^-1 k_f*||^2
             a[sl] = Kf @ self.f_alpha
             v = sla.solve_triangular(self.f_chol, Kf.T, lower=True, check_finite=False)
-            c2[sl] = kff - np.einsum("ij,ij->j", v, v)
-            # [N prediction] mu* = k_g*^T (Lambda - I/2) 1 + mu0,  s*^2 = k_g** - ||g_chol^-1 k_g*||^2
-            mu[sl] = Kg @ self.g_beta + self.g_mu0
+            c2[sl] = kf.diag(xs[sl]) - np.einsum("ij,ij->j", v, v)
+            # [N prediction] mu* = k_g*^T (Lambda - I/2) 1 + m(x*),  s*^2 = k_g** - ||g_chol^-1 k_g*||^2
+            # (+ the prior mean's parameter uncertainty, noise_prior)
+            mu[sl] = Kg @ self.g_beta + gm.value(xs[sl])
             v = sla.solve_triangular(self.g_chol, Kg.T, lower=True, check_finite=False)
-            s2[sl] = kgg - np.einsum("ij,ij->j", v, v)
+            s2[sl] = kg.diag(xs[sl]) - np.einsum("ij,ij->j", v, v) + gm.variance(xs[sl])
         np.maximum(c2, 0.0, out=c2)
         np.maximum(s2, 0.0, out=s2)
-        if self.mean_coef is not None:
-            a += xs @ self.mean_coef  # linear prior mean m(x) of f (R&W 2.7, plug-in coefficients)
         f_mean = self.y_mean + self.y_scale * a
         f_var = self.y_scale**2 * c2
         g_mean = mu + 2.0 * math.log(self.y_scale)
@@ -629,9 +745,12 @@ class FittedVHGPR:
             "y_name": self.y_name,
             "info": _jsonable(self.info),
         }
+        meta["g_feature_names"] = list(self.g_feature_names)
         arrays["meta_json"] = np.array(json.dumps(meta))
-        if self.mean_coef is not None:
-            arrays["mean_coef"] = np.asarray(self.mean_coef, dtype=np.float64)
+        for name in _OPTIONAL_ARRAY_FIELDS:
+            v = getattr(self, name)
+            if v is not None:
+                arrays[name] = np.asarray(v, dtype=np.float64)
         path = Path(path)
         try:
             with path.open("wb") as fh:
@@ -669,8 +788,12 @@ class FittedVHGPR:
             version = int(data["format_version"])
         except (TypeError, ValueError):
             raise DataError(f"{path}: malformed 'format_version'") from None
-        if version != FORMAT_VERSION:
-            raise DataError(f"{path}: model format version {version} is not supported (this microctl reads version {FORMAT_VERSION})")
+        if version not in _READABLE_VERSIONS:
+            raise DataError(f"{path}: model format version {version} is not supported (this microctl reads "
+                            f"versions {', '.join(map(str, _READABLE_VERSIONS))})")
+        if "mean_coef" in data:
+            raise DataError(f"{path}: the model uses the plug-in linear prior mean of microctl 0.1, which is no "
+                            f"longer supported (the linear trend is now part of f's kernel); retrain it")
         needed = _ARRAY_FIELDS + _FLOAT_FIELDS + _OPTIONAL_FLOAT_FIELDS + ("meta_json",)
         missing = [k for k in needed if k not in data]
         if missing:
@@ -693,6 +816,10 @@ class FittedVHGPR:
             kw["x_names"] = tuple(str(s) for s in meta.get("x_names", []))
             kw["y_name"] = str(meta.get("y_name", ""))
             kw["info"] = dict(meta.get("info", {}))
+            kw["g_feature_names"] = tuple(str(s) for s in meta.get("g_feature_names", []))
+            for name in _OPTIONAL_ARRAY_FIELDS:
+                if name in data:
+                    kw[name] = np.asarray(data[name], dtype=np.float64)
         except (TypeError, ValueError, KeyError) as exc:
             raise DataError(f"{path}: malformed model file: {exc}") from None
         X = kw["X"]
@@ -703,15 +830,20 @@ class FittedVHGPR:
             "x_mean": (d,), "x_scale": (d,), "f_log_lengthscales": (d,), "g_log_lengthscales": (d,),
             "log_lambda": (n,), "f_alpha": (n,), "g_beta": (n,), "f_chol": (n, n), "g_chol": (n, n),
         }
-        if "mean_coef" in data:  # optional: linear prior mean
-            kw["mean_coef"] = np.asarray(data["mean_coef"], dtype=np.float64)
-            shapes["mean_coef"] = (d,)
-            _freeze(kw["mean_coef"])
+        p = kw["g_feature_matrix"].shape[0] if kw.get("g_feature_matrix") is not None and kw["g_feature_matrix"].ndim == 2 else 0
+        optional_shapes = {"f_log_linear_vars": (d,), "g_feature_matrix": (p, d), "g_feature_offset": (p,),
+                           "g_log_feature_coef": (p,), "g_mean_coef_cov": (p + 1, p + 1)}
+        shapes.update({k: s for k, s in optional_shapes.items() if kw.get(k) is not None})
+        features = [k for k in ("g_feature_matrix", "g_feature_offset", "g_log_feature_coef") if kw.get(k) is not None]
+        if features and len(features) != 3:
+            raise DataError(f"{path}: malformed model file: g's prior-mean features need g_feature_matrix, "
+                            f"g_feature_offset and g_log_feature_coef together (found {', '.join(features)})")
         for name, shape in shapes.items():
             if kw[name].shape != shape:
                 raise DataError(f"{path}: malformed model file: '{name}' has shape {kw[name].shape}, expected {shape}")
-        for name in _ARRAY_FIELDS:
-            _freeze(kw[name])
+        for name in _ARRAY_FIELDS + _OPTIONAL_ARRAY_FIELDS:
+            if kw.get(name) is not None:
+                _freeze(kw[name])
         return cls(**kw)
 
 
@@ -725,6 +857,20 @@ class VHGPR:
     ----------
     bias : bool
         Add a constant (bias) term to both kernels.
+    linear : bool or sequence of int
+        Add a linear part to f's kernel (:mod:`microctl.kernels`): Bayesian linear
+        regression inside the GP, so the mean extrapolates along a fitted trend and its
+        variance includes the trend's uncertainty. The noise model weights every point, so
+        noisy points do not dominate the trend. True: on every input; a sequence: on those
+        input columns (0-based) only.
+    linear_prior_var : float or None
+        None: the linear part's variances are fitted (ARD, log space). A number: the prior
+        variance of every linear coefficient, fixed (standardised units; a large value is
+        the vague-prior limit of R&W 2.7, where the trend is estimated by generalised least
+        squares and no hyperparameter can switch it off).
+    noise_features : NoiseFeatures, optional
+        Features of a parametric prior mean of g (:mod:`microctl.noise_prior` eq. 1), in the
+        units of the inputs and of y. None (default): the paper's constant mu0.
     n_restarts : int
         Number of optimisation runs in total (>= 1).  The first starts from the
         homoscedastic GP fit; the others from seeded random perturbations of it.  The run
@@ -740,25 +886,37 @@ class VHGPR:
     max_time : float or None
         Wall-clock budget in seconds for all runs together; a run that reaches it stops
         and keeps its best point so far.  None: no budget.
-    mean : {"constant", "linear"}
-        Prior mean of f. ``"constant"`` (default): the output mean, as in the notes.
-        ``"linear"``: a linear function of the standardised inputs, fitted by least squares
-        before the GP (plug-in coefficients, Rasmussen & Williams 2006, sect. 2.7); the GP
-        then models what the linear trend leaves. Suits AFM residuals, which are dominated by
-        linear miscalibration (actuator gains, offsets, sensor scale) that an SE kernel
-        extrapolates poorly towards the faces of the workspace.
+    se : {"on", "off", "auto"}
+        f's squared-exponential (nonlinear) part. ``"auto"`` (with a linear trend): fit f
+        with and without it and keep it only if it raises the MV bound by more than its
+        d + 1 hyperparameters cost, ``(d + 1)/2 log n`` (the BIC penalty): on data whose
+        mean the trend explains, a free SE part with d lengthscales fits the noise (measured
+        on simulated rigs: 0.5-5.5 nats of bound for 2-3 times the error at the workspace's
+        faces), while a real nonlinear effect (backlash, contact loss) pays hundreds of nats.
+        ``"off"`` needs a linear trend.
+    propagate_noise_parameter_uncertainty : bool
+        Add the Laplace variance of g's parametric prior mean (``noise_prior`` eq. 2) to g's
+        posterior variance. Default False: the covariance is always computed and kept in
+        ``info["noise_parameters"]`` (standard errors), but g's variance is the GP's alone.
+        Measured on 24 simulated rigs (scripts/bench_rigs.py, docs/controller.md): a
+        Gaussian approximation cannot tell a small friction from zero on an actuator the data
+        barely isolate, and the quantile objective then avoids the truly quietest poses.
     """
 
     def __init__(
         self,
         *,
         bias: bool = False,
+        linear: bool | tuple[int, ...] = False,
+        linear_prior_var: float | None = None,
+        noise_features: NoiseFeatures | None = None,
         n_restarts: int = 2,
         max_iter: int | None = None,
         random_state: int | None = 0,
         tol: float = 1e-9,
         max_time: float | None = None,
-        mean: str = "constant",
+        se: str = "on",
+        propagate_noise_parameter_uncertainty: bool = False,
     ) -> None:
         if int(n_restarts) != n_restarts or n_restarts < 1:
             raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
@@ -768,19 +926,37 @@ class VHGPR:
             raise ConfigError(f"VHGPR: tol must be positive, got {tol!r}")
         if max_time is not None and not (max_time > 0):
             raise ConfigError(f"VHGPR: max_time must be positive or None, got {max_time!r}")
+        if noise_features is not None and not isinstance(noise_features, NoiseFeatures):
+            raise ConfigError(f"VHGPR: noise_features must be a NoiseFeatures or None, got {type(noise_features).__name__}")
+        if linear_prior_var is not None and not (isinstance(linear_prior_var, (int, float))
+                                                 and math.isfinite(linear_prior_var) and linear_prior_var > 0):
+            raise ConfigError(f"VHGPR: linear_prior_var must be a positive number or None, got {linear_prior_var!r}")
+        if not isinstance(linear, bool):
+            linear = tuple(int(i) for i in linear)
+            if not linear or min(linear) < 0:
+                raise ConfigError(f"VHGPR: linear must be a bool or non-empty input indices, got {linear!r}")
+        if se not in ("on", "off", "auto"):
+            raise ConfigError(f"VHGPR: se must be 'on', 'off' or 'auto', got {se!r}")
+        if se != "on" and linear is False:
+            raise ConfigError(f"VHGPR: se={se!r} needs a linear trend (linear=True or input indices); "
+                              "without it f would be a constant")
+        self.se = se
+        self.propagate = bool(propagate_noise_parameter_uncertainty)
         self.bias = bool(bias)
+        self.linear = linear
+        self.linear_prior_var = None if linear_prior_var is None else float(linear_prior_var)
+        self.noise_features = noise_features
         self.n_restarts = int(n_restarts)
         self.max_iter = None if max_iter is None else int(max_iter)
         self.random_state = random_state
-        if mean not in ("constant", "linear"):
-            raise ConfigError(f"VHGPR: mean must be 'constant' or 'linear', got {mean!r}")
         self.tol = float(tol)
         self.max_time = max_time
-        self.mean = mean
 
     def __repr__(self) -> str:
-        return (f"VHGPR(bias={self.bias}, n_restarts={self.n_restarts}, max_iter={self.max_iter}, "
-                f"random_state={self.random_state}, tol={self.tol}, max_time={self.max_time}, mean={self.mean!r})")
+        nf = None if self.noise_features is None else list(self.noise_features.names)
+        return (f"VHGPR(bias={self.bias}, linear={self.linear}, linear_prior_var={self.linear_prior_var}, se={self.se!r}, "
+                f"noise_features={nf}, n_restarts={self.n_restarts}, "
+                f"max_iter={self.max_iter}, random_state={self.random_state}, tol={self.tol}, max_time={self.max_time})")
 
     def fit(self, X: Any, y: Any) -> FittedVHGPR:
         """Maximise the MV bound on (X, y).
@@ -797,12 +973,18 @@ class VHGPR:
         Raises
         ------
         DataError
-            Non-finite values, wrong shapes, n < 2, mismatched lengths, constant y.
+            Non-finite values, wrong shapes, n < 2, mismatched lengths, constant y, noise
+            features of the wrong width.
         MicroctlError
             Every optimisation run failed numerically.
         """
         t0 = time.perf_counter()
         X, y = _validate_training(X, y)
+        nf = self.noise_features
+        if not isinstance(self.linear, bool) and max(self.linear) >= X.shape[1]:
+            raise DataError(f"linear trend on input column {max(self.linear)}; X has {X.shape[1]} columns")
+        if nf is not None and np.asarray(nf.matrix).shape[1] != X.shape[1]:
+            raise DataError(f"noise features act on {np.asarray(nf.matrix).shape[1]} inputs; X has {X.shape[1]} columns")
         with single_thread_blas():
             return self._fit(X, y, t0)
 
@@ -819,57 +1001,58 @@ class VHGPR:
         y_scale = float(y.std())
         Xs = (X - x_mean) / x_scale
         ys = (y - y_mean) / y_scale
-        mean_coef = None
-        if self.mean == "linear":
-            # plug-in linear prior mean: least squares on the standardised (centred) inputs;
-            # the GP is fitted to what it leaves (R&W 2.7)
-            mean_coef, *_ = np.linalg.lstsq(Xs, ys, rcond=None)
-            ys = ys - Xs @ mean_coef
+        nf = self.noise_features
+        Phi = As = bs = None
+        if nf is not None and nf.p > 0:
+            As, bs = nf.standardised(x_mean, x_scale, y_scale)
+            lin = Xs @ As.T + bs
+            Phi = lin * lin
 
         rng = np.random.default_rng(self.random_state)
-        layout = _Layout(n=n, d=d, bias=self.bias)
-        gp = _fit_homoscedastic(Xs, ys, self.bias, rng)
+        # a linear trend is affine: f's kernel gets the constant (bias) term with it
+        f_spec = KernelSpec(d=d, bias=self.bias or self.linear is not False, linear=self.linear is not False)
+        g_spec = KernelSpec(d=d, bias=self.bias)
+        lin_bounds = self._linear_bounds(d)
+        p = 0 if Phi is None else Phi.shape[1]
+        gp, loo, used = _fit_homoscedastic(Xs, ys, f_spec, rng, lin_bounds)
         kern = gp[:-1]
-        # Initial point [N]: f's kernel from the homoscedastic GP, mu0 = its log noise,
-        # Lambda = 1/2 (so mu = mu0); g's kernel: f's lengthscales, unit signal variance.
-        g_kern = kern.copy()
-        g_kern[d] = 0.0
-        if self.bias:
-            g_kern[d + 1] = -4.0
-        x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, [gp[-1]]])
-        lo, hi = (np.array(b) for b in zip(*layout.bounds()))
-        x_init = np.clip(x_init, lo, hi)
+        # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
+        # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
+        # g's kernel: f's lengthscales, unit signal variance.
+        g_kern = np.concatenate([kern[:d], [0.0], [-4.0] if self.bias else []])
+        mean0 = _init_mean_coef(loo, None if Phi is None else Phi[used], float(gp[-1]))
+        x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, mean0])
 
         max_iter = self.max_iter if self.max_iter is not None else _default_max_iter(n)
         deadline = None if self.max_time is None else t0 + float(self.max_time)
-        runs: list[dict] = []
-        best: tuple[float, np.ndarray] | None = None
-        for k in range(self.n_restarts):
-            if k == 0:
-                x0 = x_init
-            else:
-                x0 = x_init.copy()
-                x0[:n] += 0.1 * rng.standard_normal(n)
-                x0[n:-1] += 0.5 * rng.standard_normal(x0.size - n - 1)
-                x0[-1] += 0.5 * rng.standard_normal()
-                x0 = np.clip(x0, lo, hi)
-            if deadline is not None and time.perf_counter() >= deadline and best is not None:
-                runs.append({"start": k, "status": "skipped", "reason": "time budget exhausted"})
-                continue
-            run = self._run(x0, Xs, ys, layout, deadline, max_iter)
-            run["start"] = k
-            x_run = run.pop("x", None)
-            runs.append(run)
-            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
-                best = (run["bound"], x_run)
-        if best is None:
-            reasons = "; ".join(f"run {r['start']}: {r.get('reason', r['status'])}" for r in runs)
-            raise MicroctlError(f"VHGPR: every optimisation run failed ({reasons})")
+        variants = {"on": (False,), "off": (True,), "auto": (True, False)}[self.se]
+        fits = []
+        for se_off in variants:
+            layout = _Layout(n=n, f=f_spec, g=g_spec, p=p, linear_bounds=lin_bounds, se_off=se_off)
+            best, runs = self._optimise(x_init, Xs, ys, layout, rng, deadline, max_iter, Phi)
+            fits.append((layout, best, runs))
+        selection = None
+        if len(fits) == 2:  # "auto": the SE part must pay for its d + 1 hyperparameters (BIC)
+            penalty = 0.5 * (d + 1) * math.log(n)
+            gain = fits[1][1][0] - fits[0][1][0]
+            selection = {"bound_affine": fits[0][1][0], "bound_with_se": fits[1][1][0], "penalty": penalty,
+                         "kept_se": bool(gain > penalty)}
+            layout, best, runs = fits[1] if gain > penalty else fits[0]
+            runs = fits[0][2] + fits[1][2]
+        else:
+            layout, best, runs = fits[0]
 
         theta = best[1]
-        F, _, state = _mv_bound(theta, Xs, ys, layout, want_grad=False, want_state=True)
-        f_ls, f_sf2, f_b = layout.kernel(theta[layout.f_slice])
-        g_ls, g_sf2, g_b = layout.kernel(theta[layout.g_slice])
+        F, _, state = _mv_bound(theta, Xs, ys, layout, want_grad=False, want_state=True, Phi=Phi)
+        kf = f_spec.unpack(theta[layout.f_slice])
+        kg = g_spec.unpack(theta[layout.g_slice])
+        log_c = theta[layout.mean_slice]
+        coef_cov = _mean_coef_covariance(state, log_c, Phi) if Phi is not None else None
+        noise_parameters = None
+        if coef_cov is not None:
+            noise_parameters = {"names": ["constant"] + list(nf.names), "c": np.exp(log_c).tolist(),
+                                "c_std": np.sqrt(np.diag(coef_cov)).tolist(), "c_cov": coef_cov.tolist(),
+                                "units": "standardised (y_scale^2)", "propagated": self.propagate}
         info = {
             "jitter": float(state["jitter"]),
             "restarts_tried": len(runs),
@@ -878,32 +1061,84 @@ class VHGPR:
             "iterations": int(sum(r.get("iterations", 0) for r in runs)),
             "evaluations": int(sum(r.get("evaluations", 0) for r in runs)),
             "homoscedastic_init": {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]},
+            "se_selection": selection,
+            "noise_parameters": noise_parameters,
             "time_s": time.perf_counter() - t0,
-            "settings": {"bias": self.bias, "n_restarts": self.n_restarts, "max_iter": max_iter,
-                         "random_state": self.random_state, "tol": self.tol, "max_time": self.max_time,
-                         "mean": self.mean},
+            "settings": {"bias": self.bias, "linear": self.linear, "linear_prior_var": self.linear_prior_var,
+                         "se": self.se, "propagate_noise_parameter_uncertainty": self.propagate,
+                         "n_restarts": self.n_restarts,
+                         "max_iter": max_iter, "random_state": self.random_state, "tol": self.tol,
+                         "max_time": self.max_time,
+                         "noise_features": None if nf is None else list(nf.names)},
         }
         arrays = {
             "x_mean": x_mean, "x_scale": x_scale, "X": Xs,
-            "f_log_lengthscales": np.array(f_ls), "g_log_lengthscales": np.array(g_ls),
+            "f_log_lengthscales": np.array(kf.log_lengthscales), "g_log_lengthscales": np.array(kg.log_lengthscales),
             "log_lambda": theta[:n].copy(), "f_alpha": state["f_alpha"], "f_chol": state["f_chol"],
             "g_beta": state["g_beta"], "g_chol": state["g_chol"],
         }
-        for a in arrays.values():
+        optional = {
+            "f_log_linear_vars": None if kf.log_linear_vars is None else np.array(kf.log_linear_vars),
+            "g_feature_matrix": As, "g_feature_offset": bs,
+            "g_log_feature_coef": None if Phi is None else np.array(log_c[1:]),
+            "g_mean_coef_cov": coef_cov if self.propagate else None,
+        }
+        for a in list(arrays.values()) + [v for v in optional.values() if v is not None]:
             _freeze(a)
-        if mean_coef is not None:
-            _freeze(mean_coef)
         return FittedVHGPR(
-            **arrays,
+            **arrays, **optional,
             y_mean=y_mean, y_scale=y_scale,
-            f_log_signal_var=f_sf2, f_log_bias_var=f_b,
-            g_log_signal_var=g_sf2, g_log_bias_var=g_b,
-            g_mu0=float(theta[-1]), bound=float(F), training_hash=training_hash, info=info,
-            mean_coef=mean_coef,
+            f_log_signal_var=kf.log_signal_var, f_log_bias_var=kf.log_bias_var,
+            g_log_signal_var=kg.log_signal_var, g_log_bias_var=kg.log_bias_var,
+            g_mu0=float(log_c[0]), bound=float(F), training_hash=training_hash, info=info,
+            g_feature_names=() if nf is None else tuple(nf.names),
         )
 
+    def _optimise(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: _Layout,
+                  rng: np.random.Generator, deadline: float | None, max_iter: int, Phi: np.ndarray | None
+                  ) -> tuple[tuple[float, np.ndarray], list[dict]]:
+        """``n_restarts`` L-BFGS-B runs from ``x_init`` (then perturbed); the best (bound, theta) and the runs."""
+        n = layout.n
+        lo, hi = (np.array(b) for b in zip(*layout.bounds()))
+        x_init = np.clip(x_init, lo, hi)
+        runs: list[dict] = []
+        best: tuple[float, np.ndarray] | None = None
+        for k in range(self.n_restarts):
+            if k == 0:
+                x0 = x_init
+            else:
+                x0 = x_init.copy()
+                x0[:n] += 0.1 * rng.standard_normal(n)
+                x0[n:] += 0.5 * rng.standard_normal(x0.size - n)
+                x0 = np.clip(x0, lo, hi)
+            if deadline is not None and time.perf_counter() >= deadline and best is not None:
+                runs.append({"start": k, "status": "skipped", "reason": "time budget exhausted"})
+                continue
+            run = self._run(x0, Xs, ys, layout, deadline, max_iter, Phi)
+            run["start"] = k
+            run["se"] = not layout.se_off
+            x_run = run.pop("x", None)
+            runs.append(run)
+            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
+                best = (run["bound"], x_run)
+        if best is None:
+            reasons = "; ".join(f"run {r['start']}: {r.get('reason', r['status'])}" for r in runs)
+            raise MicroctlError(f"VHGPR: every optimisation run failed ({reasons})")
+        return best, runs
+
+    def _linear_bounds(self, d: int) -> tuple[tuple[float, float], ...] | None:
+        """Box bounds of f's [log bias var, log linear variances (d)]: free, fixed at the prior,
+        or off (an input without a trend)."""
+        if self.linear is False:
+            return None
+        on = set(range(d)) if self.linear is True else set(self.linear)
+        free = _BOUNDS["log_linear_var"]
+        fixed = free if self.linear_prior_var is None else (math.log(self.linear_prior_var),) * 2
+        off = (free[0], free[0])
+        return (fixed,) + tuple(fixed if i in on else off for i in range(d))
+
     def _run(self, x0: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: _Layout, deadline: float | None,
-             max_iter: int) -> dict:
+             max_iter: int, Phi: np.ndarray | None = None) -> dict:
         """One L-BFGS-B run from ``x0``; returns a record (status, bound, iterations, x)."""
         t0 = time.perf_counter()
         n = layout.n
@@ -921,7 +1156,7 @@ class VHGPR:
             te = time.perf_counter()
             try:
                 with np.errstate(all="ignore"):
-                    F, g, st = _mv_bound(theta, Xs, ys, layout, want_state=False)
+                    F, g, st = _mv_bound(theta, Xs, ys, layout, want_state=False, Phi=Phi)
             except np.linalg.LinAlgError:
                 F, g = np.nan, None
             if not np.isfinite(F) or g is None or not np.all(np.isfinite(g)):
@@ -952,7 +1187,7 @@ class VHGPR:
             return record
         # Re-evaluate the winner without error suppression, to make sure it is sound.
         try:
-            F, _, _ = _mv_bound(best[1], Xs, ys, layout, want_grad=False)
+            F, _, _ = _mv_bound(best[1], Xs, ys, layout, want_grad=False, Phi=Phi)
         except np.linalg.LinAlgError as exc:
             record.update(status="failed", reason=f"final point not positive definite: {exc}")
             return record

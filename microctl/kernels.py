@@ -1,0 +1,248 @@
+"""The covariance functions of the VHGPR, in one place for the trainer, the graph and the diagnosis.
+
+One kernel family, written once:
+
+    k(x, x') = sf2 * exp(-1/2 sum_d ((x_d - x'_d) / l_d)^2)          ARD squared exponential
+               + b                                                   optional bias
+               + sum_d v_d x_d x'_d                                  optional ARD linear part
+
+All hyperparameters are positive and live in log space (``log l``, ``log sf2``, ``log b``,
+``log v``). The linear part is Bayesian linear regression on the inputs folded into the GP
+(Rasmussen & Williams 2006, sect. 2.7 with a Gaussian prior on the coefficients): the
+posterior mean then extrapolates along the fitted trend, and the posterior variance
+includes the coefficients' uncertainty. The AFM residual is dominated by linear
+miscalibration (actuator gains, offsets, sensor scale), which an SE kernel alone
+extrapolates poorly towards the faces of the workspace, where quiet poses lie.
+
+:class:`KernelSpec` says which parts a kernel has and where each hyperparameter sits in a
+flat block; :class:`Kernel` is one kernel with its hyperparameters, evaluated in NumPy
+(:meth:`Kernel.matrix`, :meth:`Kernel.diag`, :meth:`Kernel.grad_traces`) and as CasADi
+expressions against fixed training inputs (:meth:`Kernel.casadi_column`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["KernelSpec", "Kernel", "se_matrix"]
+
+
+def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float) -> np.ndarray:
+    """The ARD squared-exponential part ``sf2 exp(-|(xa - xb) / l|^2 / 2)``, shape (m, n).
+
+    Computed as ``|a|^2 + |b|^2 - 2 a.b`` on scaled inputs (one BLAS product), clipped at 0.
+
+    Parameters
+    ----------
+    Xa : ndarray, shape (m, d)
+    Xb : ndarray, shape (n, d)
+    log_lengthscales : ndarray, shape (d,)
+    log_signal_var : float
+    """
+    inv_ls = np.exp(-np.asarray(log_lengthscales, dtype=float))
+    Za = np.asarray(Xa, dtype=float) * inv_ls
+    Zb = np.asarray(Xb, dtype=float) * inv_ls
+    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + np.einsum("ij,ij->i", Zb, Zb)[None, :]
+    sq -= 2.0 * (Za @ Zb.T)
+    np.maximum(sq, 0.0, out=sq)
+    sq *= -0.5
+    np.exp(sq, out=sq)
+    sq *= math.exp(float(log_signal_var))
+    return sq
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """Which parts a kernel on d inputs has, and the layout of its hyperparameter block.
+
+    The block is ``[log l (d), log sf2, (log b), (log v (d))]``.
+
+    Attributes
+    ----------
+    d : int
+        Input dimension.
+    bias : bool
+        Constant term b.
+    linear : bool
+        ARD linear part with variances v (d).
+    """
+
+    d: int
+    bias: bool = False
+    linear: bool = False
+
+    @property
+    def size(self) -> int:
+        """Length of the hyperparameter block."""
+        return self.d + 1 + int(self.bias) + (self.d if self.linear else 0)
+
+    def unpack(self, block: np.ndarray) -> "Kernel":
+        """The kernel with the hyperparameters of a flat block (see the class docstring)."""
+        block = np.asarray(block, dtype=float)
+        d = self.d
+        log_b = float(block[d + 1]) if self.bias else None
+        log_v = block[d + 1 + int(self.bias):].copy() if self.linear else None
+        return Kernel(log_lengthscales=block[:d].copy(), log_signal_var=float(block[d]), log_bias_var=log_b,
+                      log_linear_vars=log_v)
+
+    def bounds(self, ls: tuple[float, float], sf2: tuple[float, float], bias: tuple[float, float],
+               linear: tuple[float, float]) -> list[tuple[float, float]]:
+        """Box bounds of the block, from the bounds of each kind of hyperparameter."""
+        out = [ls] * self.d + [sf2]
+        if self.bias:
+            out.append(bias)
+        if self.linear:
+            out += [linear] * self.d
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class Kernel:
+    """One kernel of the family (see the module docstring), hyperparameters in log space.
+
+    Attributes
+    ----------
+    log_lengthscales : ndarray, shape (d,)
+    log_signal_var : float
+    log_bias_var : float or None
+    log_linear_vars : ndarray, shape (d,), or None
+    """
+
+    log_lengthscales: np.ndarray
+    log_signal_var: float
+    log_bias_var: float | None = None
+    log_linear_vars: np.ndarray | None = None
+
+    @property
+    def spec(self) -> KernelSpec:
+        """The :class:`KernelSpec` of this kernel."""
+        return KernelSpec(d=int(np.size(self.log_lengthscales)), bias=self.log_bias_var is not None,
+                          linear=self.log_linear_vars is not None)
+
+    def pack(self) -> np.ndarray:
+        """The flat hyperparameter block (inverse of :meth:`KernelSpec.unpack`)."""
+        parts = [np.asarray(self.log_lengthscales, dtype=float), [self.log_signal_var]]
+        if self.log_bias_var is not None:
+            parts.append([self.log_bias_var])
+        if self.log_linear_vars is not None:
+            parts.append(np.asarray(self.log_linear_vars, dtype=float))
+        return np.concatenate(parts)
+
+    @property
+    def signal_var(self) -> float:
+        return math.exp(self.log_signal_var)
+
+    @property
+    def bias_var(self) -> float:
+        """b (0 when the kernel has no bias)."""
+        return math.exp(self.log_bias_var) if self.log_bias_var is not None else 0.0
+
+    @property
+    def linear_vars(self) -> np.ndarray | None:
+        """v, shape (d,), or None."""
+        return None if self.log_linear_vars is None else np.exp(np.asarray(self.log_linear_vars, dtype=float))
+
+    # ---- NumPy ---------------------------------------------------------------------
+    def se(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
+        """The SE part alone, shape (m, n)."""
+        return se_matrix(Xa, Xb, self.log_lengthscales, self.log_signal_var)
+
+    def matrix(self, Xa: np.ndarray, Xb: np.ndarray, se: np.ndarray | None = None) -> np.ndarray:
+        """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed."""
+        K = self.se(Xa, Xb) if se is None else se.copy()
+        if self.log_bias_var is not None:
+            K += self.bias_var
+        v = self.linear_vars
+        if v is not None:
+            K += (np.asarray(Xa, dtype=float) * v) @ np.asarray(Xb, dtype=float).T
+        return K
+
+    def diag(self, X: np.ndarray) -> np.ndarray:
+        """k(x, x) at the rows of X, shape (m,)."""
+        X = np.asarray(X, dtype=float)
+        out = np.full(X.shape[0], self.signal_var + self.bias_var)
+        v = self.linear_vars
+        if v is not None:
+            out += (X * X) @ v
+        return out
+
+    def grad_traces(self, G: np.ndarray, se: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """``sum_ij G_ij dk(x_i, x_j)/dtheta`` for every theta of the block, shape (spec.size,).
+
+        For the SE part with Z = X / l: ``dK/dlog l_d = K_se (z_id - z_jd)^2`` and, for
+        symmetric ``H = G o K_se``, ``sum_ij H_ij (z_id - z_jd)^2 = 2 sum_i z_id^2 (H 1)_i -
+        2 z_d^T H z_d``: one product H Z, no (n, n, d) temporary. ``dK/dlog sf2 = K_se``,
+        ``dK/dlog b = b``, ``dK/dlog v_d = v_d x_d x_d^T``.
+
+        Parameters
+        ----------
+        G : ndarray, shape (n, n), symmetric
+        se : ndarray, shape (n, n), the SE part of k(X, X)
+        X : ndarray, shape (n, d)
+        """
+        H = G * se
+        Z = X * np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        h = H.sum(axis=1)
+        HZ = H @ Z
+        out = [2.0 * (Z * Z).T @ h - 2.0 * np.einsum("ij,ij->j", Z, HZ), [h.sum()]]
+        if self.log_bias_var is not None:
+            out.append([self.bias_var * G.sum()])
+        v = self.linear_vars
+        if v is not None:
+            out.append(v * np.einsum("ij,ij->j", X, G @ X))
+        return np.concatenate(out)
+
+    def cross_grad(self, Xs: np.ndarray, X: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``k(Xs, X) @ weights`` and its gradient in the rows of Xs (vectorised, for seeding).
+
+        Parameters
+        ----------
+        Xs : ndarray, shape (m, d)
+        X : ndarray, shape (n, d)
+        weights : ndarray, shape (n,)
+
+        Returns
+        -------
+        value : ndarray, shape (m,)
+        grad : ndarray, shape (m, d)
+        """
+        inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        K = self.se(Xs, X)
+        A = K * weights[None, :]
+        a = A.sum(axis=1)
+        # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2
+        grad = -(a[:, None] * Xs - A @ X) * inv_ls * inv_ls
+        value = a + self.bias_var * float(np.sum(weights))
+        v = self.linear_vars
+        if v is not None:
+            lw = (X * v).T @ weights  # (d,)
+            value = value + Xs @ lw
+            grad = grad + lw[None, :]
+        return value, grad
+
+    # ---- CasADi --------------------------------------------------------------------
+    def casadi_column(self, xs: ca.MX, X: np.ndarray) -> ca.MX:
+        """k(x*, X) as an (n, 1) MX column for a symbolic input ``xs`` of shape (d, 1)."""
+        inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        Z = X * inv_ls
+        z = xs * ca.DM(inv_ls)
+        d2 = ca.DM(np.einsum("ij,ij->i", Z, Z)) + ca.sumsqr(z) - 2.0 * ca.mtimes(ca.DM(Z), z)
+        k = self.signal_var * ca.exp(-0.5 * d2)
+        if self.log_bias_var is not None:
+            k = k + self.bias_var
+        v = self.linear_vars
+        if v is not None:
+            k = k + ca.mtimes(ca.DM(X * v), xs)
+        return k
+
+    def casadi_diag(self, xs: ca.MX) -> ca.MX:
+        """k(x*, x*) for a symbolic input ``xs`` (d, 1)."""
+        out = self.signal_var + self.bias_var
+        v = self.linear_vars
+        if v is not None:
+            return out + ca.dot(ca.DM(v), xs * xs)
+        return ca.DM(out)
