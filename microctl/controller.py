@@ -1,25 +1,29 @@
 """The optimal controller of the paper (eq. 4) and two baselines, behind one interface.
 
-Every controller has ``solve(target_um, state=None, *, u_init=None) -> ControlResult``:
+Every controller satisfies the :class:`Controller` protocol: a ``name`` and
+``solve(target_um, state=None, *, u_init=None) -> ControlResult``:
 
 - :class:`OptimalController` (EAFM): ``min_u 1 - exp(-r_e(s, u))`` (eq. 4) subject to the
-  predicted tool pose ``T_t (f_a(s, u) + g_e(s, u)) = t_d`` and ``lo <= K u <= hi``. The
-  problem is non-convex over the redundant poses, so it is seeded globally: the redundant
-  set ``{u : t_mean(s, u) = t_d, lo <= K u <= hi}`` has dimension n_p - 1 (2 for Table I);
-  a grid in the null-space coordinates of the tool map w, each point moved along w by a
-  few Newton steps onto the EAFM-mean surface, is scored with vectorised NumPy, and the
-  best local minima of the grid are polished by IPOPT (``nlpsol``, built once per model
-  with target and state as parameters).
+  predicted tool pose ``T_t (f_a(s, u) + g_e(s, u)) = t_d`` and ``lo <= K u <= hi``, with
+  ``r_e`` a summary of the predicted noise variance (:mod:`microctl.objectives`; default
+  its 95 % upper quantile). The problem is non-convex over the redundant poses, so it is
+  seeded globally: the redundant set ``{u : t_mean(s, u) = t_d, lo <= K u <= hi}`` has
+  dimension n_p - 1 (2 for Table I); a grid in the null-space coordinates of the tool map
+  w, each point moved along w by a few Newton steps onto the EAFM-mean surface, is scored
+  with vectorised NumPy, and the best local minima of the grid are polished by IPOPT
+  (``nlpsol``, built once per model with target and state as parameters).
 - :class:`AFMController`: the AFM alone, smallest actuator motion:
   ``min ||K u - q_prev||^2`` s.t. AFM ``t(u) = t_d``, ``lo <= K u <= hi``.
 - :class:`EAFMMeanController`: the same objective with the EAFM-mean constraint (accuracy
   without the variance objective).
 
-No result ever carries a command outside the actuator ranges: every returned u is checked
-(``lo - 1e-9 <= K u <= hi + 1e-9``, q clipped into the ranges) together with the
-constraint residual (``<= ControllerSettings.constraint_tol``); when IPOPT fails, the best
-feasible seed is returned (``success=False``, status naming IPOPT's) or SolveError raised.
-See ``docs/controller.md``.
+Any other objective (:class:`~microctl.objectives.Objective`) runs through
+:class:`EAFMController`. No result ever carries a command outside the actuator ranges:
+every returned u is checked (``lo - range_tol <= K u <= hi + range_tol``, q clipped into
+the ranges) together with the constraint residual (``<= ControllerSettings.constraint_tol``);
+when IPOPT fails, the best feasible seed is returned (``success=False``, status naming
+IPOPT's) or SolveError raised. :func:`compare_noise` says whether a chosen pose is credibly
+quieter than another (the AFM baseline's). See ``docs/controller.md``.
 """
 
 from __future__ import annotations
@@ -27,34 +31,45 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Protocol, runtime_checkable
 
 import casadi as ca
 import numpy as np
+from scipy.special import ndtr
 
 from microctl.afm import AnalyticForwardModel
 from microctl.blas import single_thread_blas
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError, SolveError, UnreachableTargetError
+from microctl.fields import same_setting, setting, validate_settings
+from microctl.objectives import R_E_SETTINGS, NoiseVariance, Objective, SmallestMotion
 
 __all__ = [
-    "R_E_SETTINGS", "ControllerSettings", "ControlResult", "OptimalController", "AFMController",
-    "EAFMMeanController", "RedundantSet",
+    "R_E_SETTINGS", "ControllerSettings", "ControlResult", "Controller", "EAFMController", "OptimalController",
+    "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
 ]
-
-#: Choices of r_e in eq. 4 (µm²): the median exp(g_mean) of the log-normal noise variance,
-#: its mean exp(g_mean + g_var/2), or that mean plus the epistemic variance f_var.
-R_E_SETTINGS = ("noise_median", "noise_mean", "noise_mean_plus_epistemic")
 
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Settings of the controllers.
+    """Settings of the controllers: the one set of defaults of ``solve``, ``experiment`` and the API.
+
+    Each field is declared once with its default and its rule (:func:`microctl.fields.setting`):
+    validated here, and read from YAML by :func:`microctl.fields.read_settings`.
 
     Attributes
     ----------
     r_e : str
-        Noise variance of eq. 4, one of :data:`R_E_SETTINGS` (default ``"noise_median"``).
+        Noise summary of eq. 4, one of :data:`~microctl.objectives.R_E_SETTINGS` (default
+        ``"noise_quantile"``: the upper quantile, cautious where the noise model is uncertain).
+    kappa : float
+        Standard normal quantile of ``noise_quantile`` (1.645: the 95 % quantile).
+    epistemic : bool
+        Add the mean correction's posterior variance to r_e.
+    credible_level : float
+        Probability above which the chosen pose counts as credibly quieter than the AFM
+        baseline's (:func:`compare_noise`).
     grid : int
         Grid points per null-space axis of the global seeding (``grid**(n_p-1)`` points).
     newton_steps : int
@@ -74,25 +89,37 @@ class ControllerSettings:
         IPOPT ``max_iter`` per start.
     """
 
-    r_e: str = "noise_median"
-    grid: int = 15
-    newton_steps: int = 4
-    n_polish: int = 2
-    polish_ratio: float = 1.1
-    constraint_tol: float = 1e-8
-    range_tol: float = 1e-9
-    ipopt_tol: float = 1e-8
-    max_iter: int = 200
+    r_e: str = same_setting(NoiseVariance, "r_e")
+    kappa: float = same_setting(NoiseVariance, "kappa")
+    epistemic: bool = same_setting(NoiseVariance, "epistemic")
+    credible_level: float = setting(0.95, lo=0.5, hi=1.0, lo_open=True)
+    grid: int = setting(15, lo=2, hi=201)
+    newton_steps: int = setting(4, lo=1, hi=50)
+    n_polish: int = setting(2, lo=1, hi=50)
+    polish_ratio: float = setting(1.1, lo=1.0, hi=1e6)
+    constraint_tol: float = setting(1e-8, lo=0.0, hi=1e-3, lo_open=True)  # µm: a command must meet the target
+    range_tol: float = setting(1e-9, lo=0.0, hi=1e-3)                     # µm: round-off only
+    ipopt_tol: float = setting(1e-8, lo=0.0, hi=1e-2, lo_open=True)
+    max_iter: int = setting(200, lo=1, hi=100_000)
 
     def __post_init__(self) -> None:
-        if self.r_e not in R_E_SETTINGS:
-            raise ConfigError(f"controller setting r_e: {self.r_e!r} is not one of {', '.join(R_E_SETTINGS)}")
-        if int(self.grid) != self.grid or self.grid < 2:
-            raise ConfigError(f"controller setting grid: must be an integer >= 2, got {self.grid!r}")
-        if int(self.n_polish) != self.n_polish or self.n_polish < 1:
-            raise ConfigError(f"controller setting n_polish: must be an integer >= 1, got {self.n_polish!r}")
-        if not self.polish_ratio >= 1.0:
-            raise ConfigError(f"controller setting polish_ratio: must be >= 1, got {self.polish_ratio!r}")
+        validate_settings(self, "controller setting")
+
+    def objective(self) -> NoiseVariance:
+        """The objective of eq. 4 these settings describe."""
+        return NoiseVariance(r_e=self.r_e, kappa=float(self.kappa), epistemic=self.epistemic)
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """What the experiments, the CLI and the benchmarks need of a controller."""
+
+    name: str
+
+    def solve(self, target_um: float, state: np.ndarray | None = None, *,
+              u_init: np.ndarray | None = None) -> "ControlResult":
+        """The control signal for ``target_um`` from ``state`` (default the zero state)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -129,6 +156,16 @@ class ControlResult:
         ``|t_pred(u) - target|`` under the controller's constraint model (µm).
     n_starts : int
         IPOPT starts made.
+    noise_std_um : float
+        Predicted noise std at u, ``sqrt(E[exp(g)])`` (NaN without an EAFM).
+    noise_upper_std_um : float
+        Square root of the upper quantile ``exp(mu_g + kappa s_g)`` of the noise variance
+        (``ControllerSettings.kappa``; NaN without an EAFM).
+    vs_baseline : NoiseComparison or None
+        For the optimal controller given a baseline: is u credibly quieter than the
+        baseline's command from the same state?
+    baseline_u : ndarray, shape (n_p,), or None
+        The baseline's command that ``vs_baseline`` compares with.
     """
 
     controller: str
@@ -145,6 +182,10 @@ class ControlResult:
     success: bool
     constraint_residual: float
     n_starts: int
+    noise_std_um: float = float("nan")
+    noise_upper_std_um: float = float("nan")
+    vs_baseline: "NoiseComparison | None" = None
+    baseline_u: np.ndarray | None = None
 
     def to_dict(self, names: tuple[str, ...] | None = None) -> dict:
         """Plain-Python form; ``u`` as a dict when DoF ``names`` are given."""
@@ -155,6 +196,8 @@ class ControlResult:
             "predicted_std_um": self.predicted_std_um, "objective": self.objective, "status": self.status,
             "iterations": self.iterations, "solve_time_s": self.solve_time_s, "success": self.success,
             "constraint_residual_um": self.constraint_residual, "n_starts": self.n_starts,
+            "noise_std_um": self.noise_std_um, "noise_upper_std_um": self.noise_upper_std_um,
+            "vs_baseline": None if self.vs_baseline is None else self.vs_baseline.to_dict(),
         }
 
 
@@ -350,27 +393,39 @@ class _BaseController:
 # --------------------------------------------------------------------------- EAFM controllers
 
 
-class _EAFMController(_BaseController):
-    """Controllers whose constraint is the EAFM mean (eq. 4's equality constraint)."""
+class EAFMController(_BaseController):
+    """A controller minimising ``objective`` subject to the EAFM mean (eq. 4's constraint).
 
-    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None):
+    Parameters
+    ----------
+    eafm : EAFM
+    objective : Objective
+        What to minimise (:mod:`microctl.objectives`).
+    settings : ControllerSettings, optional
+        Solver settings (the objective fields of the settings are not used here).
+    name : str
+        The controller's name in results (default ``"eafm"``).
+    """
+
+    name = "eafm"
+
+    def __init__(self, eafm: EAFM, objective: Objective, settings: ControllerSettings | None = None,
+                 name: str | None = None):
         super().__init__(eafm.afm, settings)
+        if not isinstance(objective, Objective):
+            raise ConfigError(f"objective must provide name, needs, mx() and np(); got {type(objective).__name__}")
+        if name is not None:
+            self.name = name
         self.eafm = eafm
+        self.objective = objective
         self.rset = RedundantSet(eafm.afm)
         self._solver: ca.Function | None = None
         self._range_solver: ca.Function | None = None
         self._last_attempts: dict = {"status": [], "iter": 0, "n": 0}
         self._build()
 
-    # ---- objective hooks (subclasses) ----------------------------------------------
-    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
-        raise NotImplementedError
-
-    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
-
-    def _needs(self) -> tuple[str, ...]:
-        return ("t_mean",)
+    def _objective_np(self, s: np.ndarray, U: np.ndarray, seeding: bool = False) -> np.ndarray:
+        return self.objective.np(self.eafm, s, U, seeding=seeding)
 
     # ---- NLP -------------------------------------------------------------------------
     def _build(self) -> None:
@@ -380,8 +435,8 @@ class _EAFMController(_BaseController):
         s = ca.MX.sym("s", afm.n_s)
         td = ca.MX.sym("t_d")
         jref = ca.MX.sym("J_ref")
-        e = self.eafm.expressions(s, u, self._needs())
-        J = self._objective_mx(s, u, e)
+        e = self.eafm.expressions(s, u, self.objective.needs)
+        J = self.objective.mx(s, u, e, afm.K)
         g = ca.vertcat(e["t_mean"] - td, ca.mtimes(ca.DM(afm.K), u))  # eq. 4 constraint; lo <= K u <= hi
         nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
         self._solver = ca.nlpsol(f"{self.name}_ipopt", "ipopt", nlp, _ipopt_options(self.settings))
@@ -446,10 +501,36 @@ class _EAFMController(_BaseController):
                 (qn >= self.afm.lo) & (qn <= self.afm.hi), axis=1)
             idx = np.flatnonzero(near)[feas]
             if idx.size:
-                obj[idx] = self._objective_np(s, Un[idx])
+                obj[idx] = self._objective_np(s, Un[idx], seeding=True)
         mins = _grid_local_minima(obj, shape)
         mins = mins[np.argsort(obj[mins])]
         return Un, obj, mins
+
+    def candidates(self, target_um: float, state: np.ndarray | None = None, *, max_ratio: float = 2.0,
+                   max_count: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate optimal poses: the local minima of the seeding grid over the redundant set.
+
+        Parameters
+        ----------
+        target_um : float
+        state : ndarray, shape (n_s,), optional
+        max_ratio : float
+            Keep minima whose objective is at most ``max_ratio`` times the best.
+        max_count : int
+
+        Returns
+        -------
+        U : ndarray, shape (k, n_p)
+            On the EAFM-mean surface of the target, inside the ranges (k may be 0).
+        objective : ndarray, shape (k,)
+        """
+        s = self._state(state)
+        with single_thread_blas():
+            U, obj, mins = self._seeds(s, float(target_um), self.settings.grid)
+        if mins.size == 0:
+            return np.zeros((0, self.afm.n_p)), np.zeros(0)
+        keep = mins[obj[mins] <= max_ratio * obj[mins[0]]][:max_count]
+        return U[keep], obj[keep]
 
     # ---- solve -----------------------------------------------------------------------
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
@@ -519,7 +600,7 @@ class _EAFMController(_BaseController):
                     "n": prior["n"] if prior else 0}
         best: tuple[float, np.ndarray, str] | None = None
         for u0 in starts:
-            jref = float(self._objective_np(s, u0[None, :])[0])
+            jref = float(self._objective_np(s, u0[None, :], seeding=True)[0])
             jref = jref if jref > 1e-300 else 1.0
             x, st = self._run(self._solver, u0, np.concatenate([[target], s, [jref]]),
                               self.afm.workspace.u_lo, self.afm.workspace.u_hi, self._lbg, self._ubg)
@@ -553,12 +634,15 @@ class _EAFMController(_BaseController):
                 t0: float) -> ControlResult:
         p = self.eafm.predict(s, u)
         a = self._last_attempts
+        g, gv = float(p.g_mean[0]), float(p.g_var[0])
         return ControlResult(
             controller=self.name, target_um=target, state=s.copy(), u=u.copy(), q=self._q(u),
             predicted_um=float(p.t_mean[0]), predicted_std_um=float(math.sqrt(p.t_var[0])),
             objective=float(self._objective_np(s, u[None, :])[0]), status=status,
             iterations=int(a.get("iter", 0)), solve_time_s=time.perf_counter() - t0, success=success,
             constraint_residual=float(abs(p.t_mean[0] - target)), n_starts=int(a.get("n", 0)),
+            noise_std_um=math.exp(0.5 * (g + 0.5 * gv)),
+            noise_upper_std_um=math.exp(0.5 * (g + self.settings.kappa * math.sqrt(gv))),
         )
 
     def solve_sequence(self, targets: list[float], states: list[np.ndarray] | None = None) -> list[ControlResult]:
@@ -584,45 +668,39 @@ class _EAFMController(_BaseController):
         return out
 
 
-class OptimalController(_EAFMController):
-    """The EAFM optimal controller of eq. 4 (see the module docstring).
+class OptimalController(EAFMController):
+    """The EAFM optimal controller of eq. 4 with the objective ``settings`` describe.
 
     Parameters
     ----------
     eafm : EAFM
     settings : ControllerSettings, optional
+        ``r_e``, ``kappa`` and ``epistemic`` choose the objective
+        (:meth:`ControllerSettings.objective`).
     """
 
-    name = "eafm"
+    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None, baseline: Controller | None = None):
+        settings = settings or ControllerSettings()
+        super().__init__(eafm, settings.objective(), settings, name="eafm")
+        self.baseline = baseline
 
-    def _needs(self) -> tuple[str, ...]:
-        r = self.settings.r_e
-        return ("t_mean", "g_mean") + (("g_var",) if r != "noise_median" else ()) + (
-            ("f_var",) if r == "noise_mean_plus_epistemic" else ())
-
-    def _r_e_mx(self, e: dict) -> ca.MX:
-        r = self.settings.r_e
-        if r == "noise_median":
-            return ca.exp(e["g_mean"])
-        re = ca.exp(e["g_mean"] + 0.5 * e["g_var"])
-        return re + e["f_var"] if r == "noise_mean_plus_epistemic" else re
-
-    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
-        return -ca.expm1(-self._r_e_mx(e))  # eq. 4: 1 - exp(-r_e)
+    def solve(self, target_um: float, state: np.ndarray | None = None, *,
+              u_init: np.ndarray | None = None) -> ControlResult:
+        """As :meth:`EAFMController.solve`; with a ``baseline`` controller, the result also says
+        whether the chosen pose is credibly quieter than the baseline's (``vs_baseline``)."""
+        res = super().solve(target_um, state, u_init=u_init)
+        if self.baseline is None:
+            return res
+        b = self.baseline.solve(target_um, res.state)
+        cmp = compare_noise(self.eafm, res.state, res.u, b.u, self.settings.credible_level)
+        return replace(res, vs_baseline=cmp, baseline_u=b.u.copy())
 
     def r_e_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """r_e (µm²) at the rows of U, shape (m,)."""
-        if self.settings.r_e == "noise_median":
-            return np.exp(self.eafm.g_mean_np(s, U))  # O(m n): no triangular solve
-        p = self.eafm.predict(s, U)
-        re = np.exp(p.g_mean + 0.5 * p.g_var)
-        return re + p.f_var if self.settings.r_e == "noise_mean_plus_epistemic" else re
-
-    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
-        return -np.expm1(-self.r_e_np(s, U))
+        return self.objective.r_np(self.eafm, s, U)
 
 
-class EAFMMeanController(_EAFMController):
+class EAFMMeanController(EAFMController):
     """EAFM-mean baseline: ``min ||K u - q_prev||^2`` s.t. EAFM mean = target, in range.
 
     Parameters
@@ -631,13 +709,57 @@ class EAFMMeanController(_EAFMController):
     settings : ControllerSettings, optional
     """
 
-    name = "eafm_mean"
+    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None):
+        super().__init__(eafm, SmallestMotion(), settings, name="eafm_mean")
 
-    def _objective_mx(self, s: ca.MX, u: ca.MX, e: dict) -> ca.MX:
-        return ca.sumsqr(ca.mtimes(ca.DM(self.afm.K), u) - s[1:])
 
-    def _objective_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
-        return np.sum((U @ self.afm.K.T - s[None, 1:]) ** 2, axis=1)
+# --------------------------------------------------------------------------- comparing noise
+
+
+@dataclass(frozen=True)
+class NoiseComparison:
+    """Whether pose a is credibly quieter than pose b under the EAFM's noise posterior.
+
+    Attributes
+    ----------
+    prob_quieter : float
+        P(noise variance at a < at b) = P(g_a < g_b) with (g_a, g_b) jointly Gaussian under
+        the posterior of g (correlation included).
+    log_ratio_mean, log_ratio_std : float
+        Mean and std of ``g_a - g_b`` (log of the variance ratio).
+    credible : bool
+        ``prob_quieter >= level``.
+    level : float
+    """
+
+    prob_quieter: float
+    log_ratio_mean: float
+    log_ratio_std: float
+    credible: bool
+    level: float
+
+    def to_dict(self) -> dict:
+        return {"prob_quieter": self.prob_quieter, "log_ratio_mean": self.log_ratio_mean,
+                "log_ratio_std": self.log_ratio_std, "credible": self.credible, "level": self.level}
+
+
+def compare_noise(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray,
+                  level: float = 0.95) -> NoiseComparison:
+    """Is the noise at pose ``u_a`` credibly below that at ``u_b`` (both from ``state``)?
+
+    Parameters
+    ----------
+    eafm : EAFM
+    state : ndarray, shape (n_s,)
+    u_a, u_b : ndarray, shape (n_p,)
+    level : float
+        Credibility level.
+    """
+    mean, cov = eafm.g_joint(np.asarray(state, dtype=float), np.vstack([u_a, u_b]))
+    d = float(mean[0] - mean[1])
+    sd = math.sqrt(max(float(cov[0, 0] + cov[1, 1] - 2.0 * cov[0, 1]), 1e-18))
+    p = float(ndtr(-d / sd))
+    return NoiseComparison(prob_quieter=p, log_ratio_mean=d, log_ratio_std=sd, credible=p >= level, level=level)
 
 
 # --------------------------------------------------------------------------- AFM baseline

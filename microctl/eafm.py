@@ -81,34 +81,6 @@ class EAFMPrediction:
     q: np.ndarray
 
 
-class _Kernel:
-    """Constant pieces of one ARD-SE kernel against the training inputs (standardised units)."""
-
-    def __init__(self, X: np.ndarray, log_ls: np.ndarray, log_sf2: float, log_b: float | None):
-        self.inv_ls = np.exp(-np.asarray(log_ls, dtype=float))
-        self.Z = X * self.inv_ls  # (n, d)
-        self.ZZ = np.einsum("ij,ij->i", self.Z, self.Z)  # (n,)
-        self.sf2 = math.exp(log_sf2)
-        self.bias = math.exp(log_b) if log_b is not None else 0.0
-        self.kss = self.sf2 + self.bias  # k(x, x)
-
-    # -- CasADi --------------------------------------------------------------------
-    def mx(self, xs: ca.MX) -> ca.MX:
-        """k(x*, X) as an (n, 1) MX column; ``xs`` standardised input (d, 1)."""
-        z = xs * ca.DM(self.inv_ls)
-        d2 = ca.DM(self.ZZ) + ca.sumsqr(z) - 2.0 * ca.mtimes(ca.DM(self.Z), z)
-        k = self.sf2 * ca.exp(-0.5 * d2)
-        return k + self.bias if self.bias else k
-
-    # -- NumPy ---------------------------------------------------------------------
-    def se(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """SE part of k(x*, X), shape (m, n), and the scaled inputs z, shape (m, d)."""
-        z = xs * self.inv_ls
-        d2 = np.einsum("ij,ij->i", z, z)[:, None] + self.ZZ[None, :] - 2.0 * (z @ self.Z.T)
-        np.maximum(d2, 0.0, out=d2)
-        return self.sf2 * np.exp(-0.5 * d2), z
-
-
 def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
     """L^-1 of a lower Cholesky factor as a sparse (lower-triangular) DM."""
     Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
@@ -161,8 +133,9 @@ class EAFM:
         if model.n_inputs != self.n_x:
             raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
                               f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
-        self._kf = _Kernel(model.X, model.f_log_lengthscales, model.f_log_signal_var, model.f_log_bias_var)
-        self._kg = _Kernel(model.X, model.g_log_lengthscales, model.g_log_signal_var, model.g_log_bias_var)
+        self._kf = model.f_kernel
+        self._kg = model.g_kernel
+        self._gm = model.g_prior_mean
         self._x_mean = np.asarray(model.x_mean, dtype=float)
         self._x_scale = np.asarray(model.x_scale, dtype=float)
         self._log_y2 = 2.0 * math.log(model.y_scale)
@@ -229,22 +202,24 @@ class EAFM:
         t_afm, q = self.afm.f_a(s, u)  # eq. 14
         need_f = any(k in which for k in ("t_mean", "f_mean", "f_var"))
         need_g = any(k in which for k in ("g_mean", "g_var"))
-        kf = self._kf.mx(xs) if need_f else None
-        kg = self._kg.mx(xs) if need_g else None
+        kf = self._kf.casadi_column(xs, m.X) if need_f else None
+        kg = self._kg.casadi_column(xs, m.X) if need_g else None
         if "t_mean" in which or "f_mean" in which:
             a = ca.dot(kf, ca.DM(np.asarray(m.f_alpha)))
-            if m.mean_coef is not None:
-                a = a + ca.dot(xs, ca.DM(np.asarray(m.mean_coef)))  # linear prior mean of the GP
             f_mean = m.y_mean + m.y_scale * a  # GP mean g_e
             out["f_mean"] = f_mean
             out["t_mean"] = t_afm + f_mean  # eq. 1: T_t (f_a + g_e)
         if "f_var" in which:
             # epistemic variance  y_scale^2 (k** - ||L_f^-1 k||^2)  [notes/vhgpr.md prediction]
-            out["f_var"] = m.y_scale**2 * (self._kf.kss - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
+            out["f_var"] = m.y_scale**2 * (self._kf.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
+        if need_g:
+            # g's prior mean m(x) (noise_prior eq. 1; the constant mu0 for the paper's model) and
+            # its parameter variance
+            prior, prior_var = self._gm.casadi(xs, with_variance="g_var" in which)
         if "g_mean" in which:
-            out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + m.g_mu0 + self._log_y2
+            out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + prior + self._log_y2
         if "g_var" in which:
-            out["g_var"] = self._kg.kss - ca.sumsqr(ca.mtimes(self._lg_inv(), kg))
+            out["g_var"] = self._kg.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lg_inv(), kg)) + prior_var
         if "q" in which:
             out["q"] = q
         if "t_afm" in which:
@@ -288,17 +263,9 @@ class EAFM:
         """
         X = self._x(s, U)
         xs = (X - self._x_mean) / self._x_scale
-        Kse, z = self._kf.se(xs)
-        A = Kse * np.asarray(self.model.f_alpha)[None, :]
-        a = A.sum(axis=1)
-        f = self.model.y_mean + self.model.y_scale * (a + self._kf.bias * float(np.sum(self.model.f_alpha)))
-        # d k_i / d z = -k_i^se (z - Z_i)  ->  d f / d x = -y_scale (a z - A Z) / (l x_scale)
-        dz = -(a[:, None] * z - A @ self._kf.Z)
-        dx = self.model.y_scale * dz * self._kf.inv_ls / self._x_scale
-        if self.model.mean_coef is not None:  # linear prior mean
-            coef = np.asarray(self.model.mean_coef)
-            f = f + self.model.y_scale * (xs @ coef)
-            dx = dx + self.model.y_scale * coef[None, :] / self._x_scale
+        a, da = self._kf.cross_grad(xs, self.model.X, np.asarray(self.model.f_alpha))
+        f = self.model.y_mean + self.model.y_scale * a
+        dx = self.model.y_scale * da / self._x_scale
         d = U @ self.afm.w_pred
         t = self.afm.scale * d + self.afm.quad * d * d + f
         dt = (self.afm.scale + 2.0 * self.afm.quad * d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
@@ -306,8 +273,46 @@ class EAFM:
 
     def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """Mean of the log noise variance at many u (O(m n), vectorised), shape (m,)."""
+        xs = (self._x(s, U) - self._x_mean) / self._x_scale
+        return self._kg.matrix(xs, self.model.X) @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+
+    def noise_uncertainty(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """How uncertain the predicted log noise variance is at many u, shape (m,): g's GP
+        variance plus the parametric prior mean's parameter variance (whether or not the model
+        propagates the latter into ``g_var``; :meth:`FittedVHGPR.noise_parameter_variance`)."""
         X = self._x(s, U)
         xs = (X - self._x_mean) / self._x_scale
-        Kse, _ = self._kg.se(xs)
-        beta = np.asarray(self.model.g_beta)
-        return Kse @ beta + self._kg.bias * float(beta.sum()) + self.model.g_mu0 + self._log_y2
+        Kg = self._kg.matrix(xs, self.model.X)
+        v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+        gp = np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+        prior = self._gm.variance(xs) if self._gm.coef_cov is not None else self.model.noise_parameter_variance(X)
+        return gp + prior
+
+    def g_joint(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint posterior of the log noise variance at the rows of U: mean (m,), covariance (m, m).
+
+        ``cov = K_g(X*, X*) - V^T V + cov of the prior mean``, ``V = L_g^-1 K_g(X, X*)``
+        (notes/vhgpr.md prediction, for several points at once).
+        """
+        xs = (self._x(s, U) - self._x_mean) / self._x_scale
+        Kg = self._kg.matrix(xs, self.model.X)
+        mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+        V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+        cov = self._kg.matrix(xs, xs) - V.T @ V + self._gm.covariance(xs, xs)
+        return mean, cov
+
+    def g_np(self, s: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance of the log noise variance at many u, shapes (m,), (m,).
+
+        ``with_gp_var=False`` leaves out the GP's O(m n^2) variance term ``k** - ||L_g^-1
+        k||^2`` and keeps the prior mean's parameter variance (O(m)): a cheap proxy for
+        seeding at large n.
+        """
+        xs = (self._x(s, U) - self._x_mean) / self._x_scale
+        Kg = self._kg.matrix(xs, self.model.X)
+        mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+        var = self._gm.variance(xs)
+        if with_gp_var:
+            v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+            var = var + np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+        return mean, var

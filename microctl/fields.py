@@ -3,12 +3,18 @@ the field path (``stage.actuators[2].normal``) and what would be valid.
 
 Shared by the stage config (:mod:`microctl.config`) and the experiment config
 (:mod:`microctl.experiments.config`); every method raises :class:`ConfigError`.
+
+Settings dataclasses (controller, residual model) declare each field once with
+:func:`setting` (default and :class:`Rule`); their ``__post_init__`` calls
+:func:`validate_settings` and YAML sections are read with :func:`read_settings`, so a field's
+default and its validation live in one place.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from typing import Any, Iterable
 
 from microctl.errors import ConfigError
@@ -119,3 +125,136 @@ class FieldReader:
         if lo >= hi:
             raise self.fail(path, f"lower bound {lo:g} must be below upper bound {hi:g}")
         return (lo, hi)
+
+
+# --------------------------------------------------------------------------------------
+# declarative settings: one rule per dataclass field, used by __post_init__ and the reader
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What a settings field accepts (kept in the dataclass field's metadata by :func:`setting`).
+
+    Attributes
+    ----------
+    kind : str
+        ``"bool"``, ``"int"``, ``"float"`` or ``"choice"`` (inferred from the default).
+    lo, hi : float or None
+        Inclusive bounds (``lo_open``: lo excluded).
+    choices : tuple of str
+    none_ok : bool
+        None is a valid value.
+    """
+
+    kind: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    choices: tuple[str, ...] = ()
+    none_ok: bool = False
+
+    def describe(self) -> str:
+        """What is valid, as a phrase (for messages)."""
+        if self.kind == "bool":
+            text = "true or false"
+        elif self.kind == "choice":
+            text = f"one of {', '.join(self.choices)}"
+        else:
+            noun = "an integer" if self.kind == "int" else "a number"
+            if self.lo is None and self.hi is None:
+                text = noun
+            elif self.hi is None:
+                text = f"{noun} {'>' if self.lo_open else '>='} {self.lo:g}"
+            elif self.lo is None:
+                text = f"{noun} <= {self.hi:g}"
+            else:
+                text = f"{noun} in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]"
+        return text + (" or null" if self.none_ok else "")
+
+    def check(self, value: Any) -> Any:
+        """The value converted to the field's type; ValueError (the reason) when invalid."""
+        if value is None and self.none_ok:
+            return None
+        bad = ValueError(f"must be {self.describe()}, got {value!r}")
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise bad
+            return value
+        if self.kind == "choice":
+            if not isinstance(value, str) or value not in self.choices:
+                raise bad
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad
+        if self.kind == "int":
+            if isinstance(value, float) and not value.is_integer():
+                raise bad
+            x: float = int(value)
+        else:
+            x = float(value)
+            if not math.isfinite(x):
+                raise bad
+        if self.lo is not None and (x <= self.lo if self.lo_open else x < self.lo):
+            raise bad
+        if self.hi is not None and x > self.hi:
+            raise bad
+        return x
+
+
+def setting(default: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+            choices: Iterable[str] = (), none_ok: bool = False, kind: str | None = None) -> Any:
+    """A dataclass field with a validation :class:`Rule` (kind inferred from the default)."""
+    if kind is None:
+        kind = ("choice" if choices else "bool" if isinstance(default, bool) else "int" if isinstance(default, int)
+                else "float")
+    rule = Rule(kind=kind, lo=lo, hi=hi, lo_open=lo_open, choices=tuple(choices), none_ok=none_ok)
+    return field(default=default, metadata={"rule": rule})
+
+
+def _rules(cls: type) -> list[tuple[str, Rule]]:
+    return [(f.name, f.metadata["rule"]) for f in fields(cls) if "rule" in f.metadata]
+
+
+def validate_settings(obj: Any, what: str) -> None:
+    """Check every :func:`setting` field of a dataclass instance (call from ``__post_init__``).
+
+    Raises
+    ------
+    ConfigError
+        ``"<what> <field>: must be ..., got ..."``.
+    """
+    for name, rule in _rules(type(obj)):
+        try:
+            rule.check(getattr(obj, name))
+        except ValueError as exc:
+            raise ConfigError(f"{what} {name}: {exc}") from None
+
+
+def read_settings(ck: FieldReader, raw: Any, path: str, cls: type, **fixed: Any) -> Any:
+    """Build a settings dataclass from a YAML mapping: unknown keys rejected, every field checked
+    against its rule with the file and field path in the message, absent fields at their default.
+
+    ``fixed`` gives values the caller has read itself (their keys are allowed in the mapping
+    and skipped here).
+    """
+    rules = dict(_rules(cls))
+    sec = ck.mapping(raw, path, list(rules) + [k for k in fixed if k not in rules], none_ok=True)
+    vals = dict(fixed)
+    for name, value in sec.items():
+        if name in fixed:
+            continue
+        try:
+            vals[name] = rules[name].check(value)
+        except ValueError as exc:
+            raise ck.fail(f"{path}.{name}", str(exc)) from None
+    try:
+        return cls(**vals)
+    except ConfigError as exc:  # a rule across fields (checked in __post_init__)
+        raise ConfigError(f"{ck.source}: {path}: {exc}") from None
+
+
+def same_setting(cls: type, name: str) -> Any:
+    """A new field with the default and rule of ``cls``'s field ``name`` (one definition for both)."""
+    f = next(f for f in fields(cls) if f.name == name)
+    return field(default=f.default, metadata=f.metadata)

@@ -110,7 +110,7 @@ def _fd_grad(f, u, h):
     return g
 
 
-@pytest.mark.parametrize("r_e", ["noise_median", "noise_mean"])
+@pytest.mark.parametrize("r_e", ["noise_median", "noise_mean", "noise_quantile"])
 def test_first_order_optimality(afm, eafm, r_e):
     opt_ = OptimalController(eafm, ControllerSettings(r_e=r_e))
     h = np.array([1e-5, 1e-7, 1e-7])
@@ -140,10 +140,13 @@ def test_first_order_optimality(afm, eafm, r_e):
             assert c >= -1e-6 * np.linalg.norm(gJ)
 
 
-def _r_e(eafm, s, u, r_e):
+def _r_e(eafm, s, u, r_e, kappa=1.645):
+    """r_e of eq. 4 written here from the NumPy prediction (objectives module docstring)."""
     p = eafm.predict(s, u)
     if r_e == "noise_median":
         return float(np.exp(p.g_mean[0]))
+    if r_e == "noise_quantile":
+        return float(np.exp(p.g_mean[0] + kappa * np.sqrt(p.g_var[0])))
     return float(np.exp(p.g_mean[0] + 0.5 * p.g_var[0]))
 
 

@@ -13,7 +13,8 @@ from microctl.afm import AnalyticForwardModel
 from microctl.config import load_stage_config
 from microctl.eafm import EAFM, bind_to_stage
 from microctl.errors import ConfigError
-from microctl.training import fixed_hyperparameter_model
+from microctl.training import actuator_step_features, fixed_hyperparameter_model
+from microctl.vhgpr import VHGPR
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = ("t_mean", "f_mean", "f_var", "g_mean", "g_var")
@@ -35,14 +36,25 @@ def _model(afm: AnalyticForwardModel, n: int = 60, seed: int = 0):
     return bind_to_stage(m, afm)
 
 
-@pytest.fixture(scope="module", params=["constant_mean", "linear_mean"])
+def _physical_model(afm: AnalyticForwardModel, n: int = 50, seed: int = 0):
+    """A fitted residual VHGPR with every part the default uses and more: the physical noise
+    prior (features dq_i), the affine trend on u, f's SE part on, and the noise parameters'
+    variance propagated into g (so every branch of the graph is compared)."""
+    rng = np.random.default_rng(seed)
+    U = afm.workspace.sample(n, rng)
+    S = np.column_stack([rng.uniform(0, 30, n), rng.uniform(0, 32, (n, afm.n_q))])
+    dq = U @ afm.K.T - S[:, 1:]
+    y = 0.02 * U[:, 0] + 0.3 * U[:, 1] + np.sqrt(0.05**2 + (0.03 * dq[:, 3]) ** 2) * rng.standard_normal(n)
+    m = VHGPR(linear=(5, 6, 7), linear_prior_var=10.0, se="on", noise_features=actuator_step_features(afm),
+              n_restarts=1, max_iter=40, propagate_noise_parameter_uncertainty=True).fit(np.hstack([S, U]), y)
+    return bind_to_stage(m, afm)
+
+
+@pytest.fixture(scope="module", params=["paper_hgp", "physical"])
 def eafm(afm, request):
-    """Every EAFM test runs with the GP's constant prior mean and with a linear one."""
-    model = _model(afm)
-    if request.param == "linear_mean":
-        coef = np.random.default_rng(7).normal(0.0, 0.3, model.n_inputs)
-        coef.setflags(write=False)
-        model = dataclasses.replace(model, mean_coef=coef)
+    """Every EAFM test runs with the paper's noise model (fixed hyperparameters) and with the
+    physical noise model, affine trend and propagated parameter variance (fitted)."""
+    model = _model(afm) if request.param == "paper_hgp" else _physical_model(afm)
     return EAFM(afm, model)
 
 
@@ -127,3 +139,19 @@ def test_wrong_input_dimension_refused(afm):
     m = fixed_hyperparameter_model(X, X[:, 0], np.full(20, -4.0), f_log_lengthscales=np.zeros(3))
     with pytest.raises(ConfigError, match="3 inputs"):
         EAFM(afm, bind_to_stage(m, afm))
+
+
+def test_noise_helpers_match_the_reference(afm, eafm):
+    """g_np, g_joint and noise_uncertainty against FittedVHGPR.predict (independent NumPy path)."""
+    S, U = _points(afm, 6, seed=6)
+    s = S[0]
+    ref = eafm.predict(s, U)
+    mean, var = eafm.g_np(s, U)
+    np.testing.assert_allclose(mean, ref.g_mean, rtol=1e-12)
+    np.testing.assert_allclose(var, ref.g_var, rtol=1e-9, atol=1e-12)
+    jm, jc = eafm.g_joint(s, U)
+    np.testing.assert_allclose(jm, ref.g_mean, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(jc), ref.g_var, rtol=1e-9, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(jc) > -1e-9)
+    unc = eafm.noise_uncertainty(s, U)
+    assert np.all(unc >= var - 1e-12)
