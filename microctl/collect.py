@@ -1,18 +1,8 @@
-"""Space-filling training moves (paper IV-A: 125 control signals evenly covering the workspace).
+"""Execute training moves on a backend and write them as a measurement log.
 
-Design:
-
-1. **Points.** A scrambled Sobol sequence (``scipy.stats.qmc.Sobol``, seeded) in the
-   bounding box of the workspace polytope {u : lo ≤ K u ≤ hi}; points outside the polytope
-   are dropped, in sequence order, until ``n`` are kept. Keeping a prefix-filtered Sobol
-   sequence preserves its low discrepancy inside the polytope (rejection of a
-   uniform-in-box low-discrepancy set is low-discrepancy in the accepted region).
-2. **Order.** The previous state matters to the model (g_e(s, u), eq. 3), so consecutive
-   moves should not be near each other: the points are put in a seeded random order, then
-   a repair pass swaps any move that lies within a quarter of the median inter-point
-   distance (in actuator space, µm) of its predecessor with the first later point that
-   is far enough from both neighbours. Pairs (s_prev, u) so spread over the product space.
-   The first move starts from the zero state.
+The moves come from a training design (:mod:`microctl.design`: ``covering`` by default,
+``space_filling`` for the paper's IV-A design); :func:`run_collect` executes them one by
+one, logging each completed move at once, so that a failure keeps every completed move.
 """
 
 from __future__ import annotations
@@ -20,73 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import qmc
 
-from microctl.afm import AnalyticForwardModel
 from microctl.backends.base import StageBackend
-from microctl.errors import BackendError, SolveError
+from microctl.design import space_filling_moves, training_moves  # noqa: F401  (re-exported)
+from microctl.errors import BackendError
 from microctl.measurement_log import MeasurementLogWriter
 from microctl.progress import Progress
 
-#: Consecutive moves closer than this fraction of the median inter-point distance are re-ordered.
-MIN_STEP_FRACTION = 0.25
-
-
-def space_filling_moves(afm: AnalyticForwardModel, n: int, seed: int = 0) -> np.ndarray:
-    """``n`` control signals filling the workspace polytope, in a state-spreading order.
-
-    Parameters
-    ----------
-    afm : AnalyticForwardModel
-        Gives the polytope (``afm.workspace``) and K.
-    n : int
-        Number of moves (≥ 1).
-    seed : int
-        Seed of the Sobol scrambling and of the order.
-
-    Returns
-    -------
-    ndarray, shape (n, n_p)
-    """
-    if n < 1:
-        raise SolveError(f"the number of moves must be at least 1, got {n}")
-    ws = afm.workspace
-    n_p = ws.u_lo.size
-    sobol = qmc.Sobol(d=n_p, scramble=True, seed=np.random.default_rng(seed))
-    kept: list[np.ndarray] = []
-    have = 0
-    for _ in range(64):
-        z = sobol.random_base2(m=max(int(np.ceil(np.log2(max(4 * n, 16)))), 4))
-        u = ws.map_unit(z)
-        ok = u[ws.contains(u)]
-        kept.append(ok)
-        have += len(ok)
-        if have >= n:
-            break
-    else:
-        raise SolveError("the workspace polytope is too thin to fill from its bounding box")
-    pts = np.vstack(kept)[:n]
-    return _spread_order(pts, afm.K, np.random.default_rng([seed, 1]))
-
-
-def _spread_order(u: np.ndarray, K: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    n = len(u)
-    order = rng.permutation(n)
-    if n < 3:
-        return u[order]
-    q = u @ K.T
-    dist = np.linalg.norm(q[:, None, :] - q[None, :, :], axis=-1)
-    min_step = MIN_STEP_FRACTION * np.median(dist[np.triu_indices(n, 1)])
-    order = list(order)
-    for k in range(1, n):
-        if dist[order[k - 1], order[k]] >= min_step:
-            continue
-        for j in range(k + 1, n):
-            nxt = order[k + 1] if k + 1 < n and k + 1 != j else None
-            if dist[order[k - 1], order[j]] >= min_step and (nxt is None or dist[order[j], nxt] >= min_step):
-                order[k], order[j] = order[j], order[k]
-                break
-    return u[np.array(order)]
+__all__ = ["run_collect", "training_moves", "space_filling_moves"]
 
 
 def run_collect(

@@ -1,4 +1,4 @@
-"""``microctl collect``: space-filling training moves on the configured backend → measurement log."""
+"""``microctl collect``: designed training moves on the configured backend → measurement log."""
 
 from __future__ import annotations
 
@@ -7,22 +7,27 @@ import sys
 
 from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
-from microctl.collect import run_collect, space_filling_moves
+from microctl.collect import run_collect
 from microctl.commands._common import add_quiet
 from microctl.config import load_stage_config
+from microctl.design import DEFAULT_DESIGN, DESIGNS, training_moves
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``collect`` sub-command."""
     p = subparsers.add_parser(
         "collect",
-        help="space-filling training moves on the configured backend, written as a measurement log",
-        description="Run n space-filling moves (scrambled Sobol points in the workspace polytope, in a "
-        "state-spreading order) on the backend the stage config names, writing one log row per move.",
+        help="designed training moves on the configured backend, written as a measurement log",
+        description="Run n training moves on the backend the stage config names, writing one log row per "
+        "move. The default 'covering' design mixes space-filling poses, moves holding one or two actuators "
+        "still and poses with actuators at their range limits (faces and edges of the workspace); "
+        "'space_filling' is the paper's design (scrambled Sobol points in a state-spreading order).",
     )
     p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
     p.add_argument("-n", type=int, default=125, help="number of moves (default 125, as in the paper)")
     p.add_argument("--seed", type=int, default=0, help="seed of the move design (default 0)")
+    p.add_argument("--design", choices=DESIGNS, default=DEFAULT_DESIGN,
+                   help=f"training design (default {DEFAULT_DESIGN}; see docs/experiments.md)")
     p.add_argument("-o", "--out", required=True, metavar="LOG.csv", help="measurement log to write")
     add_quiet(p)
     p.set_defaults(func=_run)
@@ -34,7 +39,7 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
-    moves = space_filling_moves(afm, args.n, seed=args.seed)
+    moves = training_moves(afm, args.design, args.n, args.seed)
     with make_backend(config) as backend:
         n = run_collect(backend, moves, args.out, quiet=args.quiet)
     if not args.quiet:

@@ -30,8 +30,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--target", required=True, type=float, metavar="T_UM", help="target tool pose (µm)")
     p.add_argument("--state", default=None, metavar="t,q1,..",
                    help="state s = [t; q] before the move, comma-separated µm (default: zero state)")
-    p.add_argument("--r-e", default="noise_median", choices=R_E_SETTINGS,
-                   help="noise variance r_e of eq. 4 (default noise_median)")
+    d = ControllerSettings()
+    p.add_argument("--r-e", default=d.r_e, choices=R_E_SETTINGS,
+                   help=f"noise summary r_e of eq. 4 (default {d.r_e}: the upper quantile of the predicted noise "
+                   "variance, cautious where the noise model is uncertain; see docs/controller.md)")
+    p.add_argument("--kappa", type=float, default=d.kappa,
+                   help=f"standard normal quantile of noise_quantile (default {d.kappa:g}: 95 %%)")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     p.set_defaults(func=_run)
 
@@ -65,9 +69,11 @@ def _run(args: argparse.Namespace) -> int:
     if not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
     eafm = EAFM(afm, args.model)
-    settings = ControllerSettings(r_e=args.r_e)
-    res = OptimalController(eafm, settings).solve(args.target, state)
-    base = AFMController(afm, settings, reporter=eafm).solve(args.target, state)
+    settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa)
+    base_ctrl = AFMController(afm, settings, reporter=eafm)
+    res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
+    base = base_ctrl.solve(args.target, state)
+    cmp = res.vs_baseline
     dof = afm.dof
     out = {
         "target_um": res.target_um,
@@ -76,8 +82,13 @@ def _run(args: argparse.Namespace) -> int:
         "q_um": res.q.tolist(),
         "predicted_um": res.predicted_um,
         "predicted_std_um": res.predicted_std_um,
+        "noise_std_um": res.noise_std_um,
+        "noise_upper_std_um": res.noise_upper_std_um,
         "objective": res.objective,
         "r_e": settings.r_e,
+        "kappa": settings.kappa,
+        "credibly_quieter_than_baseline": cmp.credible,
+        "vs_baseline": cmp.to_dict(),
         "status": res.status,
         "success": res.success,
         "iterations": res.iterations,
@@ -88,22 +99,32 @@ def _run(args: argparse.Namespace) -> int:
             "q_um": base.q.tolist(),
             "predicted_um": base.predicted_um,
             "predicted_std_um": base.predicted_std_um,
+            "predicted_by": "eafm",
             "status": base.status,
         },
+        "model": {"noise_model": eafm.model.noise_model},
     }
     if args.json:
         print_json(out)
         return 0
     units = {"z": "µm"}
-    print(f"target {res.target_um:g} µm from state [{', '.join(f'{v:g}' for v in state)}]")
-    print(f"{'':18s} {'EAFM (eq. 4)':>14s} {'AFM baseline':>14s}")
+    where = ", ".join(f"{n} = {v:g}" for n, v in zip(afm.state_names, state))
+    print(f"target {res.target_um:g} µm from the state {where} (µm; the tool pose and actuator positions "
+          f"before the move)")
+    print(f"{'':22s} {'EAFM (eq. 4)':>14s} {'AFM baseline':>14s}")
     for k, n in enumerate(dof):
         label = f"u_{n} ({units.get(n, 'mrad')})"
-        print(f"{label:18s} {res.u[k]:14.6f} {base.u[k]:14.6f}")
+        print(f"{label:22s} {res.u[k]:14.6f} {base.u[k]:14.6f}")
     for k, n in enumerate(afm.actuator_names):
-        print(f"{n + ' (µm)':18s} {res.q[k]:14.6f} {base.q[k]:14.6f}")
-    print(f"{'predicted (µm)':18s} {res.predicted_um:14.6f} {base.predicted_um:14.6f}")
-    print(f"{'pred. std (µm)':18s} {res.predicted_std_um:14.6f} {base.predicted_std_um:14.6f}")
+        print(f"{n + ' (µm)':22s} {res.q[k]:14.6f} {base.q[k]:14.6f}")
+    print(f"{'EAFM predicted (µm)':22s} {res.predicted_um:14.6f} {base.predicted_um:14.6f}")
+    print(f"{'EAFM pred. std (µm)':22s} {res.predicted_std_um:14.6f} {base.predicted_std_um:14.6f}")
+    print("(both columns predicted by the EAFM: the AFM baseline's command reaches its AFM target, not "
+          "necessarily the EAFM's)")
+    verdict = ("credibly quieter than the AFM baseline's" if cmp.credible else
+               "NOT credibly quieter than the AFM baseline's: the data do not show it to be more repeatable")
+    print(f"noise at the EAFM command: std {res.noise_std_um:.4f} µm (upper {settings.kappa:g}-sigma "
+          f"{res.noise_upper_std_um:.4f} µm); {verdict} (P = {cmp.prob_quieter:.3f}, level {cmp.level:g})")
     print(f"IPOPT: {res.status}, {res.iterations} iterations, {res.n_starts} start(s), "
-          f"{res.solve_time_s * 1e3:.1f} ms; r_e = {settings.r_e}")
+          f"{res.solve_time_s * 1e3:.1f} ms; r_e = {settings.r_e}; noise model {eafm.model.noise_model}")
     return 0
