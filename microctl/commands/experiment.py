@@ -23,6 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("experiment", metavar="EXPERIMENT.yaml", help="experiment file (see docs/experiments.md)")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default: results/<experiment name> in the current folder)")
+    p.add_argument("--seed-offset", type=int, default=0, metavar="K",
+                   help="add K (>= 0) to every seed of the file: the same experiment on another draw of every "
+                   "random choice (default 0)")
     add_quiet(p)
     p.set_defaults(func=_run)
 
@@ -32,6 +35,8 @@ def _run(args: argparse.Namespace) -> int:
     from microctl.experiments.runner import run_experiment
 
     cfg = load_experiment_config(args.experiment)  # everything validated before any move
+    if args.seed_offset:
+        cfg = cfg.with_seed_offset(args.seed_offset)
     out = Path(args.out) if args.out else Path("results") / Path(args.experiment).stem
     res = run_experiment(cfg, out, quiet=args.quiet)
     if not args.quiet:
@@ -41,5 +46,10 @@ def _run(args: argparse.Namespace) -> int:
             for name, c in inc["controllers"].items():
                 print(f"{name:6s}MSSE" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
                 print(f"{name:6s}VSSE" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
+        bars = res.get("bars", {})
+        if bars:
+            failed = [k for k, b in bars.items() if not b["passed"]]
+            print(f"experiment: bars met {len(bars) - len(failed)}/{len(bars)}"
+                  + (f" (not met: {', '.join(failed)})" if failed else ""), file=sys.stderr)
         print(f"experiment: results in {out} ({res['timings_s']['total']:.1f} s)", file=sys.stderr)
     return 0

@@ -11,20 +11,22 @@ backend is opened. See ``docs/experiments.md`` for the reference.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 from microctl.config import StageConfig, load_stage_config, load_yaml
-from microctl.controller import R_E_SETTINGS, ControllerSettings
+from microctl.controller import ControllerSettings
+from microctl.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
 from microctl.errors import ConfigError
-from microctl.fields import FieldReader
+from microctl.fields import FieldReader, read_settings, same_setting, setting, validate_settings
+from microctl.training import ResidualModelSettings
 
 #: Controllers an experiment can compare.
 CONTROLLERS = ("afm", "eafm", "oracle")
 
-#: Training move designs (see :mod:`microctl.experiments.design`).
-DESIGNS = ("space_filling", "from_zero", "face_episodes")
+#: How refinement rounds choose their moves (see :class:`Training`).
+REFINE_STRATEGIES = ("uncertainty", "on_policy")
 
 
 @dataclass(frozen=True)
@@ -68,37 +70,49 @@ class Training:
     moves : int
         Moves of the initial design (the paper: 125).
     design : str
-        One of :data:`DESIGNS`.
+        One of :data:`~microctl.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
-    restarts : int
-        VHGPR optimisation runs.
-    max_iter : int
-        L-BFGS-B iterations per run.
+    noise_model, linear_trend, restarts, max_iter
+        The residual model (:class:`~microctl.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
-        On-policy refinement rounds after the first fit (0: none): each runs incremental
-        episodes with the EAFM controller, logs them as training moves and refits.
+        Refinement rounds after the first fit (0: none): each runs incremental episodes,
+        logs them as training moves and refits.
     refine_moves : int
         Moves per refinement round.
     refine_episode_targets : int
         Targets per refinement episode (each episode starts with a return to the zero state).
     refine_target_range_um : tuple of 2 float or None
-        Range the refinement targets are drawn from (default: the AFM's reachable range).
-    gp_mean : str
-        Prior mean of the residual GP: ``"constant"`` or ``"linear"`` (see
-        :class:`microctl.vhgpr.VHGPR`).
+        Range the refinement targets are drawn from (default: the AFM's reachable range);
+        must lie inside it.
+    refine_strategy : str
+        ``uncertainty`` (default): at each refinement target, among the candidate optimal
+        poses of the redundant set (local minima of the optimistic and of the cautious
+        objective), execute the one whose predicted noise is least certain, so the model
+        learns where the optimum might be rather than only where the controller already
+        goes; ``on_policy``: the controller's own choice.
     """
 
-    moves: int = 125
-    design: str = "space_filling"
-    episode_moves: int = 4
-    restarts: int = 2
-    max_iter: int = 500
-    refine_rounds: int = 0
-    refine_moves: int = 40
-    refine_episode_targets: int = 4
+    moves: int = setting(125, lo=5, hi=MAX_MOVES)
+    design: str = setting(DEFAULT_DESIGN, choices=DESIGNS)
+    episode_moves: int = setting(4, lo=1, hi=1000)
+    noise_model: str = same_setting(ResidualModelSettings, "noise_model")
+    linear_trend: bool = same_setting(ResidualModelSettings, "linear_trend")
+    restarts: int = same_setting(ResidualModelSettings, "restarts")
+    max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
+    refine_rounds: int = setting(0, lo=0, hi=100)
+    refine_moves: int = setting(40, lo=1, hi=MAX_MOVES)
+    refine_episode_targets: int = setting(4, lo=1, hi=1000)
     refine_target_range_um: tuple[float, float] | None = None
-    gp_mean: str = "constant"
+    refine_strategy: str = setting("uncertainty", choices=REFINE_STRATEGIES)
+
+    def __post_init__(self) -> None:
+        validate_settings(self, "training setting")
+
+    def model_settings(self, seed: int) -> ResidualModelSettings:
+        """The residual model these settings describe, with the fit's seed."""
+        return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend,
+                                     restarts=self.restarts, max_iter=self.max_iter, seed=seed)
 
 
 @dataclass(frozen=True)
@@ -185,6 +199,9 @@ class ExperimentConfig:
     incremental : Incremental
     figures : bool
         Write PNG figures when matplotlib is available.
+    seed_offset : int
+        Added to every seed of the file (``microctl experiment --seed-offset``): the same
+        experiment on another draw of every random choice.
     """
 
     source: str
@@ -199,6 +216,14 @@ class ExperimentConfig:
     absolute: Absolute = field(default_factory=Absolute)
     incremental: Incremental = field(default_factory=Incremental)
     figures: bool = True
+    seed_offset: int = 0
+
+    def with_seed_offset(self, offset: int) -> "ExperimentConfig":
+        """The same experiment with every seed shifted by ``offset`` (>= 0)."""
+        if isinstance(offset, bool) or int(offset) != offset or offset < 0:
+            raise ConfigError(f"the seed offset must be a non-negative integer, got {offset!r}")
+        seeds = Seeds(**{k: v + int(offset) for k, v in asdict(self.seeds).items()})
+        return replace(self, seeds=seeds, seed_offset=self.seed_offset + int(offset))
 
     @property
     def simulated(self) -> bool:
@@ -223,6 +248,7 @@ class ExperimentConfig:
             "absolute": asdict(self.absolute),
             "incremental": inc,
             "figures": self.figures,
+            "seed_offset": self.seed_offset,
         }
 
 
@@ -296,48 +322,13 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
 
-    tr = ck.mapping(top.get("training"), "training", list(Training.__dataclass_fields__), none_ok=True)
-    dt = Training()
-    rng_raw = tr.get("refine_target_range_um", None)
+    tr_raw = top.get("training")
     rng = None
-    if rng_raw is not None:
-        rng = ck.vector(rng_raw, "training.refine_target_range_um", 2)
-        if rng[0] >= rng[1]:
-            raise ck.fail("training.refine_target_range_um", f"lower bound {rng[0]:g} must be below {rng[1]:g}")
-    training = Training(
-        moves=ck.integer(tr.get("moves", dt.moves), "training.moves", lo=5),
-        design=ck.choice(tr.get("design", dt.design), "training.design", DESIGNS),
-        episode_moves=ck.integer(tr.get("episode_moves", dt.episode_moves), "training.episode_moves", lo=1),
-        restarts=ck.integer(tr.get("restarts", dt.restarts), "training.restarts", lo=1),
-        max_iter=ck.integer(tr.get("max_iter", dt.max_iter), "training.max_iter", lo=1),
-        refine_rounds=ck.integer(tr.get("refine_rounds", dt.refine_rounds), "training.refine_rounds", lo=0),
-        refine_moves=ck.integer(tr.get("refine_moves", dt.refine_moves), "training.refine_moves", lo=1),
-        refine_episode_targets=ck.integer(tr.get("refine_episode_targets", dt.refine_episode_targets),
-                                          "training.refine_episode_targets", lo=1),
-        refine_target_range_um=rng,
-        gp_mean=ck.choice(tr.get("gp_mean", dt.gp_mean), "training.gp_mean", ("constant", "linear")),
-    )
-
-    cs_fields = ["r_e", "grid", "newton_steps", "n_polish", "polish_ratio", "constraint_tol", "ipopt_tol",
-                 "max_iter"]
-    cs = ck.mapping(top.get("controller"), "controller", cs_fields, none_ok=True)
-    dc = ControllerSettings()
-    try:
-        controller = ControllerSettings(
-            r_e=ck.choice(cs.get("r_e", dc.r_e), "controller.r_e", R_E_SETTINGS),
-            grid=ck.integer(cs.get("grid", dc.grid), "controller.grid", lo=2),
-            newton_steps=ck.integer(cs.get("newton_steps", dc.newton_steps), "controller.newton_steps", lo=1),
-            n_polish=ck.integer(cs.get("n_polish", dc.n_polish), "controller.n_polish", lo=1),
-            polish_ratio=ck.number(cs.get("polish_ratio", dc.polish_ratio), "controller.polish_ratio"),
-            constraint_tol=ck.number(cs.get("constraint_tol", dc.constraint_tol), "controller.constraint_tol",
-                                     positive=True),
-            ipopt_tol=ck.number(cs.get("ipopt_tol", dc.ipopt_tol), "controller.ipopt_tol", positive=True),
-            max_iter=ck.integer(cs.get("max_iter", dc.max_iter), "controller.max_iter", lo=1),
-        )
-    except ConfigError as exc:
-        if str(exc).startswith(source):
-            raise
-        raise ConfigError(f"{source}: controller: {exc}") from None
+    if isinstance(tr_raw, Mapping) and tr_raw.get("refine_target_range_um") is not None:
+        rng = ck.interval(tr_raw["refine_target_range_um"], "training.refine_target_range_um")
+        _check_in_range(ck, stage_config, "training.refine_target_range_um", rng)
+    training = read_settings(ck, tr_raw, "training", Training, refine_target_range_um=rng)
+    controller = read_settings(ck, top.get("controller"), "controller", ControllerSettings)
 
     oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1})
 
@@ -371,13 +362,18 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
 def _check_targets(ck: FieldReader, stage_config: StageConfig, targets: tuple[float, ...]) -> None:
     """Every target inside the AFM's reachable range (checked before any move)."""
+    for i, t in enumerate(targets):
+        _check_in_range(ck, stage_config, f"incremental.targets_um[{i}]", (t,))
+
+
+def _check_in_range(ck: FieldReader, stage_config: StageConfig, path: str, values: tuple[float, ...]) -> None:
+    """Tool poses inside the AFM's reachable range [lo, hi] (the bound printed in full precision)."""
     from microctl.afm import AnalyticForwardModel
 
     lo, hi = AnalyticForwardModel(stage_config.stage).t_range()
-    for i, t in enumerate(targets):
+    for t in values:
         if not lo <= t <= hi:
-            raise ck.fail(f"incremental.targets_um[{i}]",
-                          f"{t:g} µm is outside the stage's reachable range [{lo:.4g}, {hi:.4g}] µm")
+            raise ck.fail(path, f"{t:g} µm is outside the stage's reachable range [{lo!r}, {hi!r}] µm")
 
 
 def load_experiment_config(path: str | Path) -> ExperimentConfig:

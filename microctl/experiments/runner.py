@@ -29,17 +29,17 @@ import numpy as np
 from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
 from microctl.backends.base import Measurement, StageBackend
-from microctl.collect import space_filling_moves
+from microctl.design import space_filling_moves
 from microctl.config import StageConfig
 from microctl.controller import AFMController, ControlResult, OptimalController
 from microctl.eafm import EAFM
 from microctl.errors import BackendError, SolveError
 from microctl.experiments.config import ExperimentConfig
-from microctl.experiments.design import training_moves
+from microctl.design import training_moves
 from microctl.experiments.oracle import OracleController
 from microctl.measurement_log import MeasurementLogWriter, read_log
 from microctl.progress import Progress
-from microctl.training import residual_dataset, train_residual_model
+from microctl.training import noise_summary, residual_dataset, train_residual_model
 
 __all__ = ["MoveRecorder", "ExperimentInterrupted", "run_experiment", "BackendFactory"]
 
@@ -174,7 +174,8 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
         for u in moves:
             m, _ = rec.move(b, u, trial=0, controller="design")
             pr.step(info=f"t = {m.t_um:.3f} µm")
-    info: dict[str, Any] = {"design": tr.design, "moves": int(len(moves)), "rounds": []}
+    info: dict[str, Any] = {"design": tr.design, "moves": int(len(moves)), "rounds": [],
+                            "refine_strategy": tr.refine_strategy, "explored_moves": 0}
     eafm = _fit(run, info, 0)
     if tr.refine_rounds:
         lo, hi = tr.refine_target_range_um or afm.t_range()
@@ -197,13 +198,35 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
                             res = ctrl.solve(float(target), b.state, u_init=prev_u)
                         except SolveError:
                             continue
-                        rec.move(b, res.u, trial=r, target_um=float(target), controller="eafm")
-                        prev_u = res.u
+                        u, label = res.u, "eafm"
+                        if tr.refine_strategy == "uncertainty":
+                            u, label = _explore(ctrl, eafm, float(target), b.state, res.u)
+                            info["explored_moves"] += label == "explore"
+                        rec.move(b, u, trial=r, target_um=float(target), controller=label)
+                        prev_u = u
                         done += 1
                         pr.step()
             eafm = _fit(run, info, r)
     run.timings_s["training"] = time.perf_counter() - t0
     return eafm, info
+
+
+#: Refinement explores among candidate optima within this factor of the best objective.
+EXPLORE_RATIO = 2.0
+
+
+def _explore(ctrl: OptimalController, eafm: EAFM, target: float, s: np.ndarray, u_opt: np.ndarray
+             ) -> tuple[np.ndarray, str]:
+    """Refinement move for ``target``: among the candidate optimal poses of the redundant set
+    (grid local minima within :data:`EXPLORE_RATIO` of the best objective) and the
+    controller's own choice, the one whose noise prediction is least certain
+    (:meth:`EAFM.noise_uncertainty`): the model learns where the optimum may lie, not only
+    where the controller already goes. Returns the pose and ``"explore"`` or ``"eafm"``."""
+    U, _ = ctrl.candidates(target, s, max_ratio=EXPLORE_RATIO)
+    U = np.vstack([u_opt[None, :], U])
+    unc = eafm.noise_uncertainty(s, U)
+    k = int(np.argmax(unc))
+    return (U[k], "explore") if k > 0 and unc[k] > unc[0] else (u_opt, "eafm")
 
 
 def _fit(run: _Run, info: dict, round_: int) -> EAFM:
@@ -213,13 +236,14 @@ def _fit(run: _Run, info: dict, round_: int) -> EAFM:
     data = residual_dataset(log, run.afm)
     t0 = time.perf_counter()
     run.say(f"experiment: fitting the VHGPR to {len(data.y)} residuals (round {round_})")
-    model = train_residual_model(data, run.afm, n_restarts=tr.restarts, seed=run.cfg.seeds.gp + round_,
-                                 max_iter=tr.max_iter, mean=tr.gp_mean)
+    model = train_residual_model(data, run.afm, tr.model_settings(seed=run.cfg.seeds.gp + round_))
     model.save(run.out / "model.npz")
     info["rounds"].append({"round": round_, "rows": int(len(data.y)), "bound": float(model.bound),
                            "fit_time_s": time.perf_counter() - t0,
                            "f_log_lengthscales": np.asarray(model.f_log_lengthscales).tolist(),
-                           "g_log_lengthscales": np.asarray(model.g_log_lengthscales).tolist()})
+                           "g_log_lengthscales": np.asarray(model.g_log_lengthscales).tolist(),
+                           "se_selection": model.info.get("se_selection"),
+                           "noise": noise_summary(model, run.afm)})
     info["rows"] = int(len(data.y))
     return EAFM(run.afm, model)
 

@@ -1,0 +1,346 @@
+#!/usr/bin/env python
+"""Does the EAFM's repeatability transfer? Seeded random simulated rigs, scored against the truth.
+
+For each of ``--rigs`` random rigs (seeded; nothing is tuned per rig) — Table I geometry;
+stick-slip 0.02-0.08 µm per µm moved on one or two random actuators; every actuator's gain
+within ±5 %; gauge noise 0.03-0.08 µm; preload 300-800 N (every ball stays loaded over the
+workspace: checked at the polytope's vertices, else the rig is redrawn and the redraw
+counted) — and each training size in ``--sizes``:
+
+1. ``collect``: the method's training design on the simulated rig (a measurement log);
+2. ``train``: the residual VHGPR (eq. 3) with the method's settings;
+3. ``solve`` the targets 6, 12, 18, 24 µm in sequence on a fresh simulated stage, each from
+   the state the previous executed command left.
+
+Each chosen pose is scored with the simulator's truth from the same state: its true
+(noise-free) mean error, its true scatter (std), the oracle's scatter (the quietest pose
+that truly reaches the target: eq. 4 solved on the true mean and variance) and the AFM
+baseline's; and the predicted std is compared with the true one (calibration).
+
+Methods (columns):
+
+- ``paper``: the first release as shipped: space-filling design, the paper's noise model
+  (``hgp``: g ~ GP(mu0, K_g)), SE kernel only, r_e = noise_mean;
+- ``hgp``: today's pipeline with the paper's noise model (covering design, linear trend,
+  r_e = noise_quantile), to show what the noise model alone changes;
+- ``default``: today's defaults (physical noise model).
+
+Bars (issue 10): with 200 moves, on >= 90 % of rigs, at every target, true std <= 1.25 x
+the oracle's and |true error| <= 0.1 µm; true std / predicted std in [0.67, 1.5] on
+>= 90 % of rig-targets.
+
+The main job over seed sets (``--seed-sets N``): ``configs/experiments/paper.yaml`` run N times
+with every seed of the file shifted by ``10000 k`` (k = 1..N; ``microctl experiment
+--seed-offset``), each bar of docs/experiments.md evaluated (:mod:`microctl.experiments.bars`)
+and its pass count printed. Bar: every bar on >= 9 of 10 sets.
+
+Usage: ``python scripts/bench_rigs.py [--rigs 24] [--sizes 125,200] [--methods paper,hgp,default]
+[--params] [--seed-sets 10] [--seed 0] [--jobs 2] [--json out.json] [--verbose]``. Seeds: rig k uses
+``seed + k``. ``--rigs 0`` skips the rigs, ``--seed-sets 0`` (default) the main job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from microctl.afm import AnalyticForwardModel  # noqa: E402
+from microctl.backends.simulated import SimulatedStage  # noqa: E402
+from microctl.collect import run_collect  # noqa: E402
+from microctl.config import StageConfig, parse_stage_config  # noqa: E402
+from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
+from microctl.design import training_moves  # noqa: E402
+from microctl.eafm import EAFM  # noqa: E402
+from microctl.experiments.oracle import OracleController  # noqa: E402
+from microctl.measurement_log import read_log  # noqa: E402
+from microctl.physics import actual_positions, ball_heights, solve_equilibrium  # noqa: E402
+from microctl.controller import RedundantSet  # noqa: E402
+from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model  # noqa: E402
+
+TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
+STD_BAR, ERR_BAR_UM, CAL_BAR = 1.25, 0.1, (0.67, 1.5)
+CONTACTS_MM = ([15, 0, 5], [0, -15, 5], [-15, 0, 5], [0, 15, 5])
+TOOL_MM = [-40.957602214449594, 28.678821817552297, 10.0]
+
+
+@dataclass(frozen=True)
+class Method:
+    """A training design, a residual model and a controller objective."""
+
+    name: str
+    design: str
+    model: ResidualModelSettings
+    controller: ControllerSettings
+
+
+METHODS = {
+    "paper": Method("paper", "space_filling", ResidualModelSettings(noise_model="hgp", linear_trend=False),
+                    ControllerSettings(r_e="noise_mean")),
+    "hgp": Method("hgp", "covering", ResidualModelSettings(noise_model="hgp"), ControllerSettings()),
+    "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    # the default with the noise parameters' uncertainty propagated into the objective
+    "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
+                     ControllerSettings()),
+}
+SEED_SET_STRIDE = 10_000
+MAIN_JOB = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "paper.yaml"
+
+
+# --------------------------------------------------------------------------- rigs
+
+
+def _rig_dict(seed: int, draw: int) -> dict:
+    r = np.random.default_rng([seed, 7919, draw])
+    n_fric = int(r.integers(1, 3))
+    fric = sorted(int(i) for i in r.choice(4, n_fric, replace=False))
+    return {
+        "stage": {
+            "name": f"bench-rig-{seed}", "dof": ["z", "rx", "ry"],
+            "tool": {"name": "t", "point_mm": TOOL_MM, "direction": [0, 0, 1]},
+            "actuators": [{"name": f"q{i + 1}", "contact_mm": CONTACTS_MM[i], "range_um": [0, 32],
+                           "limit_um": [0, 38]} for i in range(4)],
+            "physics": {"contact_stiffness_n_per_um": 20.0, "preload_n": float(r.uniform(300.0, 800.0)),
+                        "flexure_stiffness": [0.01, 5.0, 5.0]},
+        },
+        "backend": {"kind": "simulated", "simulated": {
+            "seed": int(seed), "gauge_noise_std_um": float(r.uniform(0.03, 0.08)), "driver_accuracy_um": 0.01,
+            "move_time_s": 1.0,
+            "effects": {
+                "actuator_gain": [{"actuator": i + 1, "gain": float(1.0 + r.uniform(-0.05, 0.05))} for i in range(4)],
+                "actuator_friction": [{"actuator": i + 1, "std_per_um": float(r.uniform(0.02, 0.08))} for i in fric],
+            }}},
+    }
+
+
+def _all_balls_loaded(config: StageConfig) -> bool:
+    """Every ball in contact at every vertex of the workspace polytope (the physics is convex in q)."""
+    afm = AnalyticForwardModel(config.stage)
+    stage = SimulatedStage(config)
+    V = RedundantSet(afm).vertices
+    q = V @ afm.K.T
+    q_act = actual_positions(stage.model, q, np.ones_like(q))
+    _, active = solve_equilibrium(stage.model, ball_heights(stage.model, q_act))
+    return bool(np.all(active))
+
+
+def make_rig(seed: int) -> tuple[StageConfig, int]:
+    """The rig of ``seed`` and how many draws were rejected for lifting a ball."""
+    for draw in range(20):
+        cfg = parse_stage_config(_rig_dict(seed, draw), f"<bench rig {seed}>")
+        if _all_balls_loaded(cfg):
+            return cfg, draw
+    raise RuntimeError(f"rig {seed}: no well-preloaded draw in 20 tries")
+
+
+# --------------------------------------------------------------------------- one rig
+
+
+def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict:
+    """Collect, train and solve on one rig for every size and method; score against the truth."""
+    cfg, redraws = make_rig(seed)
+    afm = AnalyticForwardModel(cfg.stage)
+    eff = cfg.backend.simulated.effects
+    out = {"seed": seed, "redraws": redraws, "preload_n": cfg.stage.physics.preload_n,
+           "gauge_um": cfg.backend.simulated.gauge_noise_std_um,
+           "friction": {f"q{e.actuator}": e.std_per_um for e in eff.actuator_friction},
+           "gains": [g.gain for g in eff.actuator_gain], "runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            for name in methods:
+                meth = METHODS[name]
+                t0 = time.perf_counter()
+                log_path = Path(tmp) / f"{name}-{n}.csv"
+                moves = training_moves(afm, meth.design, n, seed)
+                with SimulatedStage(cfg, seed=seed + 10_000) as stage:
+                    run_collect(stage, moves, log_path, quiet=True)
+                data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
+                model = train_residual_model(data, afm, meth.model)
+                t_fit = time.perf_counter() - t0
+                eafm = EAFM(afm, model)
+                ctrl = OptimalController(eafm, meth.controller)
+                base = AFMController(afm)
+                rows = []
+                with SimulatedStage(cfg, seed=seed + 20_000) as stage:
+                    oracle = OracleController(afm, stage)
+                    prev = None
+                    for target in TARGETS_UM:
+                        s = stage.state
+                        res = ctrl.solve(target, s, u_init=prev)
+                        o = oracle.solve(target, s)
+                        a = base.solve(target, s)
+                        true_mean = float(stage.true_mean(s, res.u))
+                        true_std = math.sqrt(float(stage.true_var(s, res.u)))
+                        rows.append({"target_um": target, "err_um": true_mean - target, "std_um": true_std,
+                                     "oracle_std_um": o.predicted_std_um,
+                                     "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
+                                     "pred_std_um": res.predicted_std_um, "q_um": res.q.round(3).tolist(),
+                                     "oracle_q_um": o.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s})
+                        stage.move(res.u)
+                        prev = res.u
+                out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
+    return out
+
+
+# --------------------------------------------------------------------------- summary
+
+
+def _q(a, p):
+    return float(np.percentile(a, p)) if len(a) else float("nan")
+
+
+def summarise(results: list[dict], sizes, methods) -> list[dict]:
+    table = []
+    for n in sizes:
+        for name in methods:
+            runs = [r for res in results for r in res["runs"] if r["n"] == n and r["method"] == name]
+            ratio = np.array([t["std_um"] / t["oracle_std_um"] for r in runs for t in r["targets"]])
+            err = np.array([abs(t["err_um"]) for r in runs for t in r["targets"]])
+            cal = np.array([t["std_um"] / t["pred_std_um"] for r in runs for t in r["targets"]])
+            afm_ratio = np.array([t["afm_std_um"] / t["oracle_std_um"] for r in runs for t in r["targets"]])
+            rig_ok = [all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM
+                          for t in r["targets"]) for r in runs]
+            rig_std_ok = [all(t["std_um"] <= STD_BAR * t["oracle_std_um"] for t in r["targets"]) for r in runs]
+            rig_err_ok = [all(abs(t["err_um"]) <= ERR_BAR_UM for t in r["targets"]) for r in runs]
+            cal_ok = (cal >= CAL_BAR[0]) & (cal <= CAL_BAR[1])
+            table.append({
+                "n": n, "method": name, "rigs": len(runs), "rigs_pass": int(sum(rig_ok)),
+                "rigs_std_pass": int(sum(rig_std_ok)), "rigs_err_pass": int(sum(rig_err_ok)),
+                "ratio_median": _q(ratio, 50), "ratio_p90": _q(ratio, 90), "ratio_max": float(np.max(ratio)),
+                "err_median_um": _q(err, 50), "err_p90_um": _q(err, 90), "err_max_um": float(np.max(err)),
+                "cal_pass": int(np.sum(cal_ok)), "cal_n": int(cal.size), "cal_median": _q(cal, 50),
+                "cal_min": float(np.min(cal)), "cal_max": float(np.max(cal)),
+                "afm_ratio_median": _q(afm_ratio, 50),
+                "fit_s_median": _q([r["fit_s"] for r in runs], 50),
+                "solve_ms_median": _q([t["solve_ms"] for r in runs for t in r["targets"]], 50),
+            })
+    return table
+
+
+def print_table(table: list[dict], n_rigs: int) -> None:
+    print(f"\nrigs passing = at every target true std <= {STD_BAR} x oracle AND |true error| <= {ERR_BAR_UM} µm "
+          f"(bar: >= 90 % of {n_rigs} rigs at n = 200); calibration = true/predicted std in {list(CAL_BAR)} "
+          "(bar: >= 90 % of rig-targets)")
+    hdr = (f"{'n':>4} {'method':>8} {'pass':>7} {'std ok':>7} {'err ok':>7} | {'std/oracle med':>14} {'p90':>6} "
+           f"{'max':>7} | {'|err| med':>9} {'p90':>6} {'max':>6} | {'calib ok':>9} {'med':>5} {'min':>5} {'max':>5} | "
+           f"{'AFM/oracle':>10} {'fit s':>6} {'solve ms':>8}")
+    print(hdr)
+    print("-" * len(hdr))
+    for t in table:
+        print(f"{t['n']:>4} {t['method']:>8} {t['rigs_pass']:>3}/{t['rigs']:<3} {t['rigs_std_pass']:>3}/{t['rigs']:<3} "
+              f"{t['rigs_err_pass']:>3}/{t['rigs']:<3} | {t['ratio_median']:>14.2f} {t['ratio_p90']:>6.2f} "
+              f"{t['ratio_max']:>7.2f} | {t['err_median_um']:>9.3f} {t['err_p90_um']:>6.3f} {t['err_max_um']:>6.3f} | "
+              f"{t['cal_pass']:>4}/{t['cal_n']:<4} {t['cal_median']:>5.2f} {t['cal_min']:>5.2f} {t['cal_max']:>5.2f} | "
+              f"{t['afm_ratio_median']:>10.2f} {t['fit_s_median']:>6.2f} {t['solve_ms_median']:>8.1f}")
+
+
+def run_seed_set(k: int, experiment: str) -> dict:
+    """The main job with every seed shifted by SEED_SET_STRIDE * k; its bars and timings."""
+    from microctl.experiments.config import load_experiment_config
+    from microctl.experiments.runner import run_experiment
+
+    cfg = load_experiment_config(experiment).with_seed_offset(SEED_SET_STRIDE * k)
+    with tempfile.TemporaryDirectory() as tmp:
+        res = run_experiment(replace(cfg, figures=False), tmp, quiet=True)
+    e = res["incremental"]["controllers"]["eafm"]
+    return {"set": k, "offset": SEED_SET_STRIDE * k, "bars": res["bars"], "time_s": res["timings_s"]["total"],
+            "vsse_eafm_over_oracle": res["incremental"]["ratios"].get("vsse_eafm_over_oracle"),
+            "coverage": res["absolute"]["fraction_within_2sigma"], "eafm_msse_um": e["msse_um"]}
+
+
+def print_seed_sets(sets: list[dict]) -> None:
+    from microctl.experiments.bars import BARS
+
+    print(f"\nmain job ({MAIN_JOB.name}) over {len(sets)} seed sets (offsets {SEED_SET_STRIDE} k): bars met per set")
+    names = [b for b in BARS if any(b in r["bars"] for r in sets)]
+    print(f"{'set':>4} " + " ".join(f"{n:>18}" for n in names) + f" {'all':>5} {'time s':>7}")
+    for r in sets:
+        print(f"{r['set']:>4} " + " ".join(f"{('yes' if r['bars'][n]['passed'] else 'NO'):>18}" for n in names)
+              + f" {('yes' if all(b['passed'] for b in r['bars'].values()) else 'NO'):>5} {r['time_s']:>7.1f}")
+    print(f"{'pass':>4} " + " ".join(f"{sum(r['bars'][n]['passed'] for r in sets):>15}/{len(sets):<2}" for n in names)
+          + f" {sum(all(b['passed'] for b in r['bars'].values()) for r in sets):>3}/{len(sets)}")
+    for r in sets:
+        for n, b in r["bars"].items():
+            if not b["passed"]:
+                print(f"  set {r['set']}: {n}: {b['detail']}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rigs", type=int, default=24)
+    ap.add_argument("--sizes", default="125,200")
+    ap.add_argument("--methods", default="paper,hgp,default")
+    ap.add_argument("--seed", type=int, default=0, help="rig k uses seed + k")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (rigs in parallel)")
+    ap.add_argument("--json", metavar="FILE", help="write every rig's results and the summary")
+    ap.add_argument("--verbose", action="store_true", help="print every rig-target")
+    ap.add_argument("--seed-sets", type=int, default=0, help="also run the main job over this many seed sets")
+    ap.add_argument("--experiment", default=str(MAIN_JOB), help="experiment file for --seed-sets")
+    args = ap.parse_args(argv)
+    sizes = tuple(int(s) for s in args.sizes.split(","))
+    methods = tuple(m.strip() for m in args.methods.split(","))
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        ap.error(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    seeds = [args.seed + k for k in range(args.rigs)]
+    print(f"machine: {platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpu, Python "
+          f"{platform.python_version()}, numpy {np.__version__}; {args.rigs} rigs (seeds {args.seed}.."
+          f"{args.seed + args.rigs - 1}), sizes {list(sizes)}, methods {list(methods)}, targets {list(TARGETS_UM)} µm, "
+          f"{args.seed_sets} main-job seed sets, jobs {args.jobs}")
+    t0 = time.perf_counter()
+    sets: list[dict] = []
+    if args.seed_sets:
+        ks = list(range(1, args.seed_sets + 1))
+        if args.jobs > 1:
+            with ProcessPoolExecutor(args.jobs) as ex:
+                sets = list(ex.map(run_seed_set, ks, [args.experiment] * len(ks)))
+        else:
+            sets = [run_seed_set(k, args.experiment) for k in ks]
+        print_seed_sets(sets)
+    results: list[dict] = []
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as ex:
+            futs = [ex.submit(run_rig, s, sizes, methods) for s in seeds]
+            for f in futs:
+                results.append(f.result())
+                print(f"  rig {results[-1]['seed']} done", file=sys.stderr)
+    else:
+        for s in seeds:
+            results.append(run_rig(s, sizes, methods))
+            print(f"  rig {s} done", file=sys.stderr)
+    if args.verbose and results:
+        for res in results:
+            print(f"\nrig {res['seed']}: friction {res['friction']}, gauge {res['gauge_um']:.3f} µm, "
+                  f"preload {res['preload_n']:.0f} N, gains {np.round(res['gains'], 3).tolist()}")
+            for r in res["runs"]:
+                for t in r["targets"]:
+                    bad = t["std_um"] > STD_BAR * t["oracle_std_um"] or abs(t["err_um"]) > ERR_BAR_UM
+                    print(f"  n={r['n']:>3} {r['method']:>8} t={t['target_um']:>4g} err {t['err_um']:+.3f} "
+                          f"std {t['std_um']:.3f} oracle {t['oracle_std_um']:.3f} "
+                          f"({t['std_um'] / t['oracle_std_um']:.2f}x) AFM {t['afm_std_um']:.3f} "
+                          f"pred {t['pred_std_um']:.3f} q {t['q_um']}{'  <-' if bad else ''}")
+    table = summarise(results, sizes, methods) if results else []
+    if results:
+        print_table(table, len(seeds))
+        print(f"\nredrawn rigs (a ball lifted off): {sum(r['redraws'] > 0 for r in results)}")
+    print(f"wall time {time.perf_counter() - t0:.0f} s")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"summary": table, "rigs": results, "seed_sets": sets}, indent=1,
+                                              default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
