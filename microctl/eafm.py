@@ -219,7 +219,10 @@ class EAFM:
         if "g_mean" in which:
             out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + prior + self._log_y2
         if "g_var" in which:
-            out["g_var"] = self._kg.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lg_inv(), kg)) + prior_var
+            gp_var = self._kg.casadi_diag(xs)
+            if not m.g_gp_var_negligible:  # else its bound k** (vhgpr.G_GP_VAR_NEGLIGIBLE)
+                gp_var = gp_var - ca.sumsqr(ca.mtimes(self._lg_inv(), kg))
+            out["g_var"] = gp_var + prior_var
         if "q" in which:
             out["q"] = q
         if "t_afm" in which:
@@ -282,9 +285,12 @@ class EAFM:
         propagates the latter into ``g_var``; :meth:`FittedVHGPR.noise_parameter_variance`)."""
         X = self._x(s, U)
         xs = (X - self._x_mean) / self._x_scale
-        Kg = self._kg.matrix(xs, self.model.X)
-        v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-        gp = np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+        if self.model.g_gp_var_negligible:
+            gp = self._kg.diag(xs)
+        else:
+            Kg = self._kg.matrix(xs, self.model.X)
+            v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+            gp = np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
         prior = self._gm.variance(xs) if self._gm.coef_cov is not None else self.model.noise_parameter_variance(X)
         return gp + prior
 
@@ -297,8 +303,10 @@ class EAFM:
         xs = (self._x(s, U) - self._x_mean) / self._x_scale
         Kg = self._kg.matrix(xs, self.model.X)
         mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
-        V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-        cov = self._kg.matrix(xs, xs) - V.T @ V + self._gm.covariance(xs, xs)
+        cov = self._kg.matrix(xs, xs) + self._gm.covariance(xs, xs)
+        if not self.model.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
+            V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+            cov = cov - V.T @ V
         return mean, cov
 
     def g_np(self, s: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -312,7 +320,9 @@ class EAFM:
         Kg = self._kg.matrix(xs, self.model.X)
         mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
         var = self._gm.variance(xs)
-        if with_gp_var:
+        if self.model.g_gp_var_negligible:
+            var = var + self._kg.diag(xs)
+        elif with_gp_var:
             v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
             var = var + np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
         return mean, var

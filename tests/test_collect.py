@@ -1,4 +1,4 @@
-"""``microctl collect`` into tmp_path, and the space-filling design."""
+"""``microctl collect`` into tmp_path, and the training designs."""
 
 from pathlib import Path
 
@@ -6,7 +6,11 @@ import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.cli import main
+import pytest
+
 from microctl.collect import space_filling_moves
+from microctl.design import training_moves
+from microctl.errors import ConfigError
 from microctl.config import load_stage_config
 from microctl.measurement_log import read_log
 
@@ -44,3 +48,41 @@ def test_collect_cli_input_errors(tmp_path, capsys):
     assert main(["collect", "--config", str(tmp_path / "none.yaml"), "-o", str(tmp_path / "x.csv")]) == 2
     assert "none.yaml" in capsys.readouterr().err
     assert main(["collect", "--config", SIM, "-n", "0", "-o", str(tmp_path / "x.csv")]) == 2
+
+
+def test_covering_design_holds_actuators_still_and_visits_the_limits():
+    """Every pose inside the polytope; a third or more of the moves keep at least one actuator
+    exactly still (hold moves and faces with a held actuator); every actuator sits at each of
+    its limits in some move; step sizes of each actuator spread from ~0 to most of its range."""
+    afm = AnalyticForwardModel(load_stage_config(SIM).stage)
+    u = training_moves(afm, "covering", 200, seed=4)
+    assert u.shape == (200, 3) and afm.workspace.contains(u).all()
+    q = np.vstack([np.zeros(4), afm.q_of(u)])
+    dq = np.diff(q, axis=0)
+    still = np.abs(dq) < 1e-9
+    assert np.mean(still.any(axis=1)) >= 0.3
+    for i in range(4):
+        assert still[:, i].sum() >= 10, f"actuator {i + 1} rarely held still"
+        assert np.any(np.abs(q[:, i] - afm.lo[i]) < 1e-9) and np.any(np.abs(q[:, i] - afm.hi[i]) < 1e-9)
+        moving = np.abs(dq[:, i])[~still[:, i]]
+        assert np.min(moving) < 1.0 and np.max(moving) > 20.0
+    assert np.array_equal(u, training_moves(afm, "covering", 200, seed=4))
+
+
+def test_large_designs_run_in_linear_memory():
+    """n = 20000 (the first release built a 20000 x 20000 distance matrix, 3 GiB): both
+    designs finish and stay in the polytope."""
+    afm = AnalyticForwardModel(load_stage_config(SIM).stage)
+    for design in ("space_filling", "covering"):
+        u = training_moves(afm, design, 20000, seed=0)
+        assert u.shape == (20000, 3) and afm.workspace.contains(u).all()
+
+
+def test_design_arguments_are_checked():
+    afm = AnalyticForwardModel(load_stage_config(SIM).stage)
+    with pytest.raises(ConfigError, match="training design 'grid' is not one of covering, space_filling"):
+        training_moves(afm, "grid", 10, 0)
+    with pytest.raises(ConfigError, match=r"number of moves must be an integer in \[1, 1000000\], got 0"):
+        training_moves(afm, "covering", 0, 0)
+    with pytest.raises(ConfigError, match="design seed must be a non-negative integer, got -1"):
+        training_moves(afm, "covering", 5, -1)

@@ -14,6 +14,7 @@ from microctl.config import load_stage_config
 from microctl.eafm import EAFM, bind_to_stage
 from microctl.errors import ConfigError
 from microctl.training import actuator_step_features, fixed_hyperparameter_model
+import microctl.vhgpr as vh
 from microctl.vhgpr import VHGPR
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,3 +156,26 @@ def test_noise_helpers_match_the_reference(afm, eafm):
     assert np.all(np.linalg.eigvalsh(jc) > -1e-9)
     unc = eafm.noise_uncertainty(s, U)
     assert np.all(unc >= var - 1e-12)
+
+
+def test_negligible_gp_variance_is_bounded_consistently(afm):
+    """With g's GP prior variance <= 1e-4 (vhgpr.G_GP_VAR_NEGLIGIBLE) its posterior variance is
+    taken as the prior bound k**: the graph equals the NumPy prediction, and the value lies
+    between the exact variance and the exact variance + 1e-4 (conservative, never below)."""
+    exact_model = _model(afm)
+    tiny = dataclasses.replace(exact_model, g_log_signal_var=float(np.log(5e-5)))
+    S, U = _points(afm, 12, seed=9)
+    X = np.hstack([S, U])
+    bounded = tiny.predict(X).g_var
+    old = vh.G_GP_VAR_NEGLIGIBLE
+    try:  # the exact variance of the same model, with the rule switched off
+        vh.G_GP_VAR_NEGLIGIBLE = 0.0
+        want = tiny.predict(X).g_var
+    finally:
+        vh.G_GP_VAR_NEGLIGIBLE = old
+    assert np.all(bounded >= want - 1e-15) and np.all(bounded <= want + 1e-4)
+    e = EAFM(afm, tiny)
+    got = np.array(e.function(s=ca.DM(S.T), u=ca.DM(U.T))["g_var"]).ravel()
+    np.testing.assert_allclose(got, bounded, rtol=1e-12)
+    mean, var = e.g_np(S[0], U)
+    np.testing.assert_allclose(var, tiny.predict(np.hstack([np.tile(S[0], (len(U), 1)), U])).g_var, rtol=1e-12)

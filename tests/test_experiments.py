@@ -13,7 +13,7 @@ from microctl import stats
 from microctl.backends.simulated import SimulatedStage
 from microctl.cli import main
 from microctl.config import load_stage_config
-from microctl.errors import BackendError
+from microctl.errors import BackendError, ConfigError
 from microctl.experiments.config import load_experiment_config
 from microctl.experiments.runner import run_experiment
 from microctl.measurement_log import read_log
@@ -24,7 +24,7 @@ EMULATED = ROOT / "configs/stage/emulated.yaml"
 
 TINY = {
     "stage": str(STAGE),
-    "training": {"moves": 20, "design": "face_episodes", "restarts": 1, "max_iter": 60},
+    "training": {"moves": 20, "restarts": 1, "max_iter": 60},
     "absolute": {"points": 3, "trials": 2},
     "incremental": {"targets_um": [7, 14], "trials": 3},
     "oracle": {"grid": 9, "line_points": 15, "zooms": 1},
@@ -113,6 +113,12 @@ def test_common_random_numbers(quick_run):
     ({"incremental": {"targets_um": [7, 500]}}, "incremental.targets_um[1]"),
     ({"controllers": ["afm", "eafm", "magic"]}, "controllers[2]"),
     ({"controller": {"r_e": "huge"}}, "controller.r_e"),
+    ({"controller": {"constraint_tol": 1e9}}, "controller.constraint_tol"),
+    ({"controller": {"kappa": -1}}, "controller.kappa"),
+    ({"training": {"moves": 20, "noise_model": "magic"}}, "training.noise_model"),
+    ({"training": {"moves": 20, "linear_trend": False, "se": "off"}}, "training"),
+    ({"training": {"moves": 20, "refine_target_range_um": [0, 500]}}, "training.refine_target_range_um"),
+    ({"training": {"moves": 20, "gp_mean": "linear"}}, "training.gp_mean"),
     ({"absolute": {"trials": 0}}, "absolute.trials"),
     ({"stage": "nope.yaml"}, "stage"),
 ])
@@ -203,3 +209,30 @@ def test_emulated_serial_run(tmp_path):
     log = read_log(out / "incremental_log.csv", stage)
     assert len(log) == 2 * 2 * 2  # 2 controllers x 2 trials x (zero + 1 target)
     assert set(log.extra["controller"]) == {"afm", "eafm"}
+
+
+def test_seed_offset_shifts_every_seed(tmp_path):
+    exp = _write(tmp_path, TINY)
+    cfg = load_experiment_config(exp)
+    shifted = cfg.with_seed_offset(10_000)
+    for k, v in vars(cfg.seeds).items():
+        assert getattr(shifted.seeds, k) == v + 10_000
+    assert shifted.seed_offset == 10_000 and shifted.to_dict()["seed_offset"] == 10_000
+    with pytest.raises(ConfigError, match="seed offset must be a non-negative integer, got -1"):
+        cfg.with_seed_offset(-1)
+
+
+def test_short_run_quality(tmp_path):
+    """A short seeded run (80 designed moves, no refinement) on sim_paper: the EAFM beats the
+    AFM where the stage's defects make the AFM wrong and noisy. Thresholds sit well inside
+    what the main job measures over 10 seed sets (|MSSE| ratio > 100, VSSE ratio > 4): a
+    broken noise model or mean correction drops below them."""
+    doc = {**TINY, "training": {"moves": 80, "restarts": 1}, "incremental": {"targets_um": [7, 21], "trials": 4},
+           "absolute": {"points": 10, "trials": 2}}
+    res = run_experiment(load_experiment_config(_write(tmp_path, doc)), tmp_path / "out", quiet=True)
+    inc = res["incremental"]["controllers"]
+    assert np.all(np.abs(inc["afm"]["msse_um"]) > 10 * np.abs(inc["eafm"]["msse_um"]))
+    assert np.all(np.asarray(inc["eafm"]["true_std_um"]) <= 1.25 * np.asarray(inc["oracle"]["true_std_um"]))
+    assert np.all(np.asarray(inc["afm"]["expected_vsse_um2"]) > 2 * np.asarray(inc["eafm"]["expected_vsse_um2"]))
+    assert res["absolute"]["eafm_below_afm_points"] >= 9
+    assert set(res["bars"]) >= {"msse_ratio", "vsse_ratio", "eafm_bias", "vsse_vs_oracle", "coverage"}

@@ -64,13 +64,38 @@ def test_solve_json(trained, capsys):
     u = np.array([out["u"][k] for k in ("z", "rx", "ry")])
     np.testing.assert_allclose(afm.K @ u, q, atol=1e-9)
     assert out["predicted_std_um"] > 0 and out["status"] == "Solve_Succeeded"
+    # the comparison with the AFM baseline, and the defaults shared with the API and experiments
+    assert isinstance(out["credibly_quieter_than_baseline"], bool)
+    assert 0.0 <= out["vs_baseline"]["prob_quieter"] <= 1.0 and out["vs_baseline"]["level"] == 0.95
+    assert out["r_e"] == "noise_quantile" and out["kappa"] == 1.645 and out["model"]["noise_model"] == "physical"
+    assert out["baseline"]["predicted_by"] == "eafm"
 
 
 def test_solve_human_table(trained, capsys):
     d, log, model, afm = trained
     rc = main(["solve", "--config", str(CONFIG), "--model", str(model), "--target", "20"])
     text = capsys.readouterr().out
-    assert rc == 0 and "AFM baseline" in text and "pred. std" in text and "IPOPT" in text
+    assert rc == 0 and "AFM baseline" in text and "EAFM pred. std" in text and "IPOPT" in text
+    assert "quieter than the AFM baseline's" in text and "from the state t = 0" in text
+
+
+def test_train_options_and_noise_report(trained, capsys, tmp_path):
+    d, log, model, afm = trained
+    out = tmp_path / "hgp.npz"
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(out), "--noise-model", "hgp",
+               "--no-linear-trend", "--restarts", "1"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "noise model hgp" in err
+    m = FittedVHGPR.load(out)
+    assert m.noise_model == "hgp" and m.f_log_linear_vars is None
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "p.npz"), "--restarts", "1"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "stick-slip std per µm moved" in err and "q4" in err and "SE part" in err
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "x.npz"), "--no-linear-trend",
+               "--se", "off"])
+    assert rc == 2 and "--se off needs the linear trend" in capsys.readouterr().err
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "x.npz"), "--restarts", "0"])
+    assert rc == 2 and "--restarts: must be an integer in [1, 100], got 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("state,needle", [("1,2,3", "3 value(s)"), ("1,2,x,4,5", "'x'"), ("1,2,3,4,nan", "not finite")])

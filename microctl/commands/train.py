@@ -44,11 +44,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.se == "off" and not args.linear_trend:
+        raise ConfigError("--se off needs the linear trend (without the trend and the SE part the mean correction "
+                          "would be a constant): drop --no-linear-trend, or use --se auto or on")
     try:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed)
-    except ConfigError as exc:  # name the option, not the field
-        raise ConfigError(str(exc).replace("residual model setting ", "--").replace("_", "-", 1)) from None
+    except ConfigError as exc:  # name the option, not the field: "residual model setting restarts: ..."
+        field = str(exc).removeprefix("residual model setting ").split(":", 1)[0]
+        raise ConfigError(f"--{field.replace('_', '-')}:{str(exc).split(':', 1)[1]}") from None
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
