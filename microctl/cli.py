@@ -3,14 +3,14 @@
 Each sub-command lives in its own module under :mod:`microctl.commands` and exposes
 ``register(subparsers)``; this module discovers them, so adding a command never edits
 this file. Exit status: 0 success, 2 usage or input error (one line on stderr, no
-traceback), 1 any other failure.
+traceback), 1 any other failure, 130 interrupted (Ctrl-C, at any point after this module is
+imported: also while the command modules and their NumPy/CasADi imports load, which takes
+most of a second).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import pkgutil
 import sys
 from typing import Sequence
 
@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"microctl {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    import importlib
+    import pkgutil
+
     import microctl.commands as commands_pkg
 
     for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda m: m.name):
@@ -45,6 +48,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # e.g. while the command modules are still being imported
+        print("microctl: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, seed
 from microctl.config import load_stage_config
 from microctl.emulator import Emulator, default_ports
 from microctl.errors import ConfigError
@@ -28,7 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="ports for the controllers (config order) then the gauge; default from the config's "
         "socket://127.0.0.1:P URLs",
     )
-    p.add_argument("--seed", type=int, default=None, help="override backend.simulated.seed")
+    p.add_argument("--seed", type=seed, default=None, help="override backend.simulated.seed (a non-negative integer)")
     add_quiet(p)
     p.set_defaults(func=_run)
 

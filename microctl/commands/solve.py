@@ -14,6 +14,7 @@ from microctl.config import load_stage_config
 from microctl.controller import R_E_SETTINGS, AFMController, ControllerSettings, OptimalController
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError
+from microctl.measurement_log import T_PLAUSIBLE_FACTOR, plausible_t_bound_um
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,7 +38,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
-    """Parse ``--state`` (``t,q1,..``) into shape (n_s,); ConfigError naming the value."""
+    """Parse ``--state`` (``t,q1,..``) into shape (n_s,); ConfigError naming the value.
+
+    Each q must lie within its actuator's hardware ``limit_um`` (it may be outside ``range_um``:
+    a stage can be left there) and |t| within the bound a measurement log has
+    (:func:`~microctl.measurement_log.plausible_t_bound_um`).
+    """
     if text is None:
         return afm.zero_state()
     parts = [p.strip() for p in text.split(",")]
@@ -52,6 +58,16 @@ def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
             raise ConfigError(f"--state {text!r}: {name} = {p!r} is not a number") from None
         if not math.isfinite(out[k]):
             raise ConfigError(f"--state {text!r}: {name} = {p!r} is not finite")
+    for a, q in zip(afm.stage.actuators, out[1:]):
+        lo, hi = a.limit_um
+        if not lo <= q <= hi:
+            raise ConfigError(f"--state {text!r}: {a.name} = {q:g} µm is beyond the actuator's hardware limit "
+                              f"[{lo:g}, {hi:g}] µm (limit_um in the stage config); no stage can be there")
+    t_max = plausible_t_bound_um(afm.stage)
+    if abs(out[0]) > t_max:
+        raise ConfigError(f"--state {text!r}: {afm.state_names[0]} = {out[0]:g} µm is implausible: the stage reaches "
+                          f"at most |t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm and states beyond {T_PLAUSIBLE_FACTOR:g} "
+                          "times that are refused")
     return out
 
 

@@ -7,7 +7,7 @@ import sys
 import time
 
 from microctl.afm import AnalyticForwardModel
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, add_seed, check_output_file
 from microctl.config import load_stage_config
 from microctl.errors import ConfigError
 from microctl.measurement_log import read_log
@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
     p.add_argument("-o", "--out", required=True, metavar="MODEL.npz", help="model file to write")
     p.add_argument("--restarts", type=int, default=2, metavar="N", help="optimisation runs (default 2)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the restarts (default 0)")
+    add_seed(p, "seed of the restarts (default 0)")
     add_quiet(p)
     p.set_defaults(func=_run)
 
@@ -37,6 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.restarts < 1:
         raise ConfigError(f"--restarts must be at least 1, got {args.restarts}")
+    check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
