@@ -46,6 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    """The message on one line: line breaks that came with a quoted value are shown escaped."""
+    return str(exc).replace("\r", "\\r").replace("\n", "\\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
     try:
@@ -64,10 +69,10 @@ def _main(argv: Sequence[str] | None) -> int:
     try:
         return int(args.func(args) or 0)
     except INPUT_ERRORS as exc:
-        print(f"microctl: error: {exc}", file=sys.stderr)
+        print(f"microctl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except MicroctlError as exc:
-        print(f"microctl: error: {exc}", file=sys.stderr)
+        print(f"microctl: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("microctl: interrupted", file=sys.stderr)

@@ -735,7 +735,7 @@ def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
             raise ctx.fail(f"{ap}.axis", f"expected an axis id such as '1' or 'A', got {m['axis']!r}")
         axis = str(m["axis"]).strip()
         if not axis or any(ch.isspace() for ch in axis):
-            raise ctx.fail(f"{ap}.axis", f"'{m['axis']}' is not a valid axis id (no spaces)")
+            raise ctx.fail(f"{ap}.axis", f"{m['axis']!r} is not a valid axis id (no spaces)")
         ctx.ascii_text(axis, f"{ap}.axis", what="an axis id")
         if "=" in axis:
             raise ctx.fail(f"{ap}.axis", f"'{axis}' is not a valid axis id ('=' separates axis and value in replies)")

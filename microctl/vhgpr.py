@@ -1067,7 +1067,23 @@ def _open_model_file(path: Path) -> Any:
         except (UnicodeDecodeError, IndexError):
             what = f"it starts with the bytes {head[:8]!r}, not a zip archive"
         raise ValueError(f"{what}; a model file is the .npz archive written by `microctl train` or `microctl gp fit`")
-    return np.load(path, allow_pickle=False)
+    npz = np.load(path, allow_pickle=False)
+    if isinstance(npz, np.lib.npyio.NpzFile):
+        try:
+            for name in npz.files:  # read once here, so that a wrong dtype is refused, not cast with a warning
+                try:
+                    a = npz[name]
+                except ValueError as exc:
+                    if "pickle" in str(exc):
+                        raise ValueError(f"array '{name}' holds Python objects (pickled data), which a model "
+                                         "file never does") from None
+                    raise
+                if name != "meta_json" and a.dtype.kind not in "biuf":
+                    raise ValueError(f"array '{name}' has dtype {a.dtype}; a model file holds real numbers")
+        except BaseException:
+            npz.close()
+            raise
+    return npz
 
 
 def _check_model_values(path: Path, kw: dict) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -137,3 +138,31 @@ def test_cli_solve_csv_model_one_line(model_path, tmp_path, capsys):
     rc = main(["solve", "--config", str(CONFIG), "--model", str(csv), "--target", "5"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "a text file" in err and "pickle" not in err
+
+
+def test_cli_solve_refuses_a_residual_model_of_absurd_size(model_path, tmp_path, capsys):
+    """Found by the fuzz test: y_scale × 1e10 passes load (variance < 1e100) but IPOPT then fails (exit 1)."""
+    bad = _variant(model_path, tmp_path / "scaled.npz", y_scale=lambda d: d["y_scale"] * 1e10)
+    rc = main(["solve", "--config", str(CONFIG), "--model", str(bad), "--target", "5"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "the residual model's y_scale = " in err and "beyond what stage 'table1' can produce" in err
+
+
+@pytest.mark.parametrize("dtype, match", [
+    (np.complex128, r"array 'X' has dtype complex128; a model file holds real numbers"),
+    ("U8", r"array 'X' has dtype <U8"),
+    (object, r"array 'X' holds Python objects \(pickled data\), which a model file never does"),
+])
+def test_wrong_dtype_refused_not_cast(model_path, tmp_path, dtype, match):
+    """Found by the fuzz test: a complex X was cast to real with a ComplexWarning (two more stderr lines)."""
+    bad = tmp_path / "dtype.npz"
+    with np.load(model_path) as npz:
+        data = {k: npz[k] for k in npz.files}
+    data["X"] = data["X"].astype(dtype)
+    np.savez(bad, **data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning on the way to the error
+        with pytest.raises(DataError, match=r"dtype\.npz: not a VHGPR model file \(\.npz\): " + match) as info:
+            FittedVHGPR.load(bad)
+    assert "allow_pickle" not in str(info.value)

@@ -197,3 +197,25 @@ def test_time_s_over_a_shared_serial_backend_is_wall_time(tmp_path):
     log = read_log(tmp_path / "log.csv", cfg.stage)
     assert np.all(np.diff(log.time_s) >= 0)
     assert wall - 0.3 <= log.time_s[-1] <= wall  # the last move settled before the last sleep
+
+
+def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
+    """``collect`` through the serial backend says where the rig stood, and how the gauge was tared."""
+    from microctl.cli import main
+
+    for gauge, expect in (({}, "collect: start state read from the devices: q1 = 19.0000 µm, q2 = 4.4000 µm"),
+                          ({"zero_at_start": True, "tare_samples": 8},
+                           "collect: gauge tared at the zero state: offset ")):
+        cfg = _base(**gauge)
+        with Emulator(cfg, start_q_um=START_Q) as emu:
+            path = tmp_path / "stage.yaml"
+            path.write_text(_pointed_at(cfg, emu).dump_yaml())
+            out = tmp_path / "log.csv"
+            assert main(["collect", "--config", str(path), "-n", "2", "-o", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert expect in err, err
+        if gauge:
+            assert "the mean of 8 readings (tare_samples; standard error" in err
+            assert read_log(out, cfg.stage).s_prev[0].tolist() == [0.0] * 5
+        else:
+            assert read_log(out, cfg.stage).s_prev[0, 1:].tolist() == list(START_Q)
