@@ -3,7 +3,8 @@
 Each sub-command lives in its own module under :mod:`microctl.commands` and exposes
 ``register(subparsers)``; this module discovers them, so adding a command never edits
 this file. Exit status: 0 success, 2 usage or input error (one line on stderr, no
-traceback), 1 any other failure, 130 interrupted (Ctrl-C, at any point after this module is
+traceback), 1 any other failure (also an ``OSError`` from writing results, e.g. a full
+disk, or running out of memory: one line, no traceback), 130 interrupted (Ctrl-C, at any point after this module is
 imported: also while the command modules and their NumPy/CasADi imports load, which takes
 most of a second).
 """
@@ -82,6 +83,13 @@ def _main(argv: Sequence[str] | None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # the machine, not the input: a full disk, an I/O error while writing results
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"microctl: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("microctl: error: out of memory", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

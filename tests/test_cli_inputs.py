@@ -181,3 +181,39 @@ def test_ctrl_c_while_modules_load_prints_no_traceback(tmp_path):
         if p.returncode != 0:  # interrupted (130, or killed by the re-raised SIGINT: -2)
             assert err.strip().splitlines()[-1] == "microctl: interrupted", (delay, err)
     assert sum(rc != 0 for _, rc, _ in outcomes) >= 3, outcomes
+
+
+def test_experiment_file_not_utf8(tmp_path, capsys):
+    exp = tmp_path / "exp.yaml"
+    exp.write_bytes(QUICK.read_bytes().replace(b"# A tiny", b"# A t\xefny"))
+    rc = main(["experiment", str(exp), "--out", str(tmp_path / "out")])
+    _one_line_error(capsys, rc, contains=["exp.yaml: not UTF-8 text: byte 0xef at line 1"])
+
+
+def test_environment_oserror_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
+    """E.g. results.json on a full disk: one line, exit 1, the old file untouched, no temp file left."""
+    import errno
+    import json as _json
+
+    from microctl.commands import _common
+
+    target = tmp_path / "results.json"
+    target.write_text("{}\n")
+
+    def full(self, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(OSError):
+        _common.write_json(target, {"a": 1})
+    monkeypatch.undo()
+    assert _json.loads(target.read_text()) == {} and not (tmp_path / "results.json.tmp").exists()
+
+    import microctl.commands.stage as stage_cmd
+
+    def boom(args):
+        raise OSError(errno.ENOSPC, "No space left on device", str(target))
+
+    monkeypatch.setattr(stage_cmd, "_show", boom)
+    rc = main(["stage", "show", "--config", str(TABLE1)])
+    _one_line_error(capsys, rc, want_rc=1, contains=[f"{target}: No space left on device"])

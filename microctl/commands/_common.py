@@ -119,8 +119,16 @@ def print_json(obj: Any) -> None:
 
 
 def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` (atomically: temp file then rename)."""
+    """Write ``obj`` as indented JSON to ``path`` (atomically: temp file then rename).
+
+    On failure (a full disk) the temp file is removed and ``path`` is left as it was; the
+    ``OSError`` propagates (the command line reports it in one line, exit status 1).
+    """
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
