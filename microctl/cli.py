@@ -4,30 +4,41 @@ Each sub-command lives in its own module under :mod:`microctl.commands` and expo
 ``register(subparsers)``; this module discovers them, so adding a command never edits
 this file. Exit status: 0 success, 2 usage or input error (one line on stderr, no
 traceback), 1 any other failure (also an ``OSError`` from writing results, e.g. a full
-disk, or running out of memory: one line, no traceback), 130 interrupted (Ctrl-C, at any point after this module is
-imported: also while the command modules and their NumPy/CasADi imports load, which takes
-most of a second).
+disk, or running out of memory: one line, no traceback), 130 interrupted (Ctrl-C, at any
+point once this module is imported: also while argparse, the command modules and their
+NumPy/CasADi imports load, which takes most of a second). This module imports only ``sys``
+and :mod:`microctl.errors` at import time, so that window starts a few milliseconds after
+the interpreter.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
-from typing import Sequence
+from typing import TYPE_CHECKING
 
-from microctl import __version__
 from microctl.errors import INPUT_ERRORS, MicroctlError
 
+if TYPE_CHECKING:  # pragma: no cover
+    import argparse
+    from typing import Sequence
 
-class _Parser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors are one line and exit status 2."""
 
-    def error(self, message: str) -> None:  # noqa: D401 - argparse API
-        self.exit(2, f"{self.prog}: error: {message}\n")
+def _parser_class() -> type:
+    """ArgumentParser whose usage errors are one line and exit status 2 (argparse imported here)."""
+    import argparse
+
+    class _Parser(argparse.ArgumentParser):
+        def error(self, message: str) -> None:  # noqa: D401 - argparse API
+            self.exit(2, f"{self.prog}: error: {message}\n")
+
+    return _Parser
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every discovered sub-command."""
+    from microctl import __version__
+
+    _Parser = _parser_class()
     parser = _Parser(
         prog="microctl",
         description="Accurate, repeatable position control of piezo micromanipulators (EAFM).",
