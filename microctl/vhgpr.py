@@ -1104,6 +1104,12 @@ def _check_model_values(path: Path, kw: dict) -> None:
     - the predictive variance far from the data and at the checked training inputs finite
       and at most :data:`_MAX_MODEL_VARIANCE` (a huge variance overflows later, in solve).
     """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        _check_model_arrays(path, kw)  # inf/nan from absurd values fail the checks; no RuntimeWarning
+
+
+def _check_model_arrays(path: Path, kw: dict) -> None:
+    """The checks of :func:`_check_model_values` (NumPy floating-point warnings silenced)."""
     import re
 
     def fail(message: str) -> DataError:

@@ -166,3 +166,12 @@ def test_wrong_dtype_refused_not_cast(model_path, tmp_path, dtype, match):
         with pytest.raises(DataError, match=r"dtype\.npz: not a VHGPR model file \(\.npz\): " + match) as info:
             FittedVHGPR.load(bad)
     assert "allow_pickle" not in str(info.value)
+
+
+def test_huge_finite_value_refused_without_warnings(model_path, tmp_path):
+    """Found by the fuzz test: X[0, 0] = 1e300 made the standardisation check overflow with a RuntimeWarning."""
+    bad = _variant(model_path, tmp_path / "huge.npz", X=_set("X", (0, 0), 1e300))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(DataError, match=r"huge\.npz: the stored arrays do not belong together: column 0 of 'X'"):
+            FittedVHGPR.load(bad)
