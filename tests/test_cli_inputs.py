@@ -217,3 +217,14 @@ def test_environment_oserror_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(stage_cmd, "_show", boom)
     rc = main(["stage", "show", "--config", str(TABLE1)])
     _one_line_error(capsys, rc, want_rc=1, contains=[f"{target}: No space left on device"])
+
+
+@pytest.mark.parametrize("start_q, message", [
+    ("1,2,x,4", "--start-q '1,2,x,4': expected comma-separated positions in µm"),
+    ("0,0,0,50", "start_q_um: q4 = 50 µm is beyond its limit_um [0, 38]"),
+    ("0,0", "start_q_um: give 4 finite positions"),
+])
+def test_emulate_start_q_checked(capsys, start_q, message):
+    rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "0,0,0",
+               "--start-q", start_q])
+    _one_line_error(capsys, rc, contains=[message])
