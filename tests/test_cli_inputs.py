@@ -228,3 +228,14 @@ def test_emulate_start_q_checked(capsys, start_q, message):
     rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "0,0,0",
                "--start-q", start_q])
     _one_line_error(capsys, rc, contains=[message])
+
+
+def test_memory_error_is_one_line_exit_1(capsys, monkeypatch):
+    import microctl.commands.stage as stage_cmd
+
+    def boom(args):
+        raise MemoryError
+
+    monkeypatch.setattr(stage_cmd, "_show", boom)
+    rc = main(["stage", "show", "--config", str(TABLE1)])
+    _one_line_error(capsys, rc, want_rc=1, contains=["microctl: error: out of memory"])

@@ -160,3 +160,24 @@ def test_good_serial_config_round_trips(doc):
     assert (g.query, g.eol, g.tare_samples) == ("POS", "\r", 5)
     again = parse_stage_config(yaml.safe_load(cfg.dump_yaml()), source="x")
     assert again.backend == cfg.backend
+
+
+@pytest.mark.parametrize("axis, match", [
+    ([1], r"axes\.q2\.axis: expected an axis id such as '1' or 'A', got \[1\]"),
+    ("A=1", r"axes\.q2\.axis: 'A=1' is not a valid axis id \('=' separates axis and value in replies\)"),
+    ("\r\n", r"axes\.q2\.axis: '\\r\\n' is not a valid axis id \(no spaces\)"),
+])
+def test_serial_axis_ids(doc, axis, match):
+    d = _serial_doc(doc)
+    d["backend"]["serial"]["axes"]["q2"]["axis"] = axis
+    _bad(d, match)
+
+
+def test_cli_error_with_a_line_break_in_a_value_is_one_line(doc, tmp_path, capsys):
+    d = _serial_doc(doc)
+    d["backend"]["serial"]["controllers"][0]["name"] = "drv\n1"
+    p = tmp_path / "s.yaml"
+    p.write_text(yaml.safe_dump(d))
+    assert main(["stage", "show", "--config", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "drv\\n1" in err, err

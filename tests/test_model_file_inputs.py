@@ -175,3 +175,22 @@ def test_huge_finite_value_refused_without_warnings(model_path, tmp_path):
         warnings.simplefilter("error")
         with pytest.raises(DataError, match=r"huge\.npz: the stored arrays do not belong together: column 0 of 'X'"):
             FittedVHGPR.load(bad)
+
+
+def test_nonpositive_x_scale_refused(model_path, tmp_path):
+    bad = _variant(model_path, tmp_path / "xs.npz", x_scale=lambda d: -d["x_scale"])
+    with pytest.raises(DataError, match=r"xs\.npz: 'x_scale' = \[.*\] must be > 0 in every column"):
+        FittedVHGPR.load(bad)
+
+
+def test_variance_overflowing_at_the_training_inputs_refused(model_path, tmp_path):
+    """g_beta is not tied to the factors: huge values pass those checks, the prediction at X overflows."""
+    def huge(d):  # mu = K_g g_beta + mu0 of about 1e4 at the training inputs: exp() overflows
+        return d["g_beta"] + 1e4 / (np.exp(float(d["g_log_signal_var"])) * d["g_beta"].size)
+
+    bad = _variant(model_path, tmp_path / "beta.npz", g_beta=huge)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(DataError, match=r"beta\.npz: (predicting at the training inputs overflows|the model's "
+                                            r"predictive variance at its training inputs reaches)"):
+            FittedVHGPR.load(bad)

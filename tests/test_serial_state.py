@@ -219,3 +219,30 @@ def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
             assert read_log(out, cfg.stage).s_prev[0].tolist() == [0.0] * 5
         else:
             assert read_log(out, cfg.stage).s_prev[0, 1:].tolist() == list(START_Q)
+
+
+def test_garbled_controller_at_connect_names_it():
+    cfg = _base()
+    with Emulator(cfg, faults=[Fault("garbled", "driver2", after_moves=0)]) as emu:
+        with pytest.raises(BackendError, match=r"controller 'driver2' \(socket://127\.0\.0\.1:\d+\): unparsable reply to "
+                                               r"'ERR\?' \(axes A\) after 2 attempts; expected an integer, received"):
+            SerialStage(_pointed_at(cfg, emu))
+
+
+def test_axes_never_on_target_time_out_with_the_controller_named():
+    cfg = _base()
+    cfg = replace(cfg, backend=replace(cfg.backend, serial=replace(cfg.backend.serial, on_target_timeout_s=0.2)))
+    with Emulator(cfg, ont_polls=10**9) as emu:
+        with SerialStage(_pointed_at(cfg, emu)) as stage:
+            with pytest.raises(BackendError, match=r"controller 'driver1' .*: axes 1, 2, 3 not on target within 0.2 s "
+                                                   r"after MOV"):
+                stage.move(_moves(cfg, 1)[0])
+
+
+def test_gauge_number_must_be_finite_and_strict():
+    """A permissive reply_pattern must not let 'inf' through as a reading."""
+    cfg = _base(reply_pattern=r"^\s*(\S+)\s*$")
+    with Emulator(cfg, gauge_offset_um=float("inf")) as emu:
+        with pytest.raises(BackendError, match=r"gauge \(socket://.*\): unparsable reply to 'MEAS\?' after 2 attempts "
+                                               r"\(pattern .*, a finite decimal number\); received b'\+inf\\r\\n'"):
+            SerialStage(_pointed_at(cfg, emu))
