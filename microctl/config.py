@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -39,6 +40,16 @@ MAX_CONDITION = 1e6
 #: normal needs ten times its stroke to move the platform (ill-conditioned eq. 10).
 MIN_TRANSMISSION = 0.1
 
+#: Largest magnitude of an actuator's ``range_um`` or ``limit_um``, µm. A piezo stroke is tens
+#: to hundreds of µm; a bound beyond 10 mm is a unit mistake (nm typed as µm), not a stage.
+MAX_STROKE_UM = 1e4
+
+#: Longest port timeout, on-target timeout or poll interval accepted, s (pyserial cannot wait
+#: much longer than this on every platform, and a device slower than an hour is broken).
+MAX_WAIT_S = 3600.0
+
+#: Fastest baud rate accepted (real serial adapters stop well below it).
+MAX_BAUDRATE = 100_000_000
 
 
 # --------------------------------------------------------------------------------------
@@ -387,6 +398,7 @@ class Gauge:
     reply_pattern: str = r"^\s*\+?(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
     samples: int = 1
     zero_at_start: bool = False
+    tare_samples: int = 20
 
 
 @dataclass(frozen=True)
@@ -558,8 +570,8 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
             contact_mm=ctx.vector(a["contact_mm"], f"{p}.contact_mm", 3),  # type: ignore[arg-type]
             normal=ctx.unit_vector(a.get("normal", [0, 0, 1]), f"{p}.normal"),
             direction=ctx.unit_vector(a.get("direction", [0, 0, 1]), f"{p}.direction"),
-            range_um=ctx.interval(a.get("range_um", [0, 32]), f"{p}.range_um"),
-            limit_um=ctx.interval(a.get("limit_um", [0, 38]), f"{p}.limit_um"),
+            range_um=ctx.interval(a.get("range_um", [0, 32]), f"{p}.range_um", max_abs=MAX_STROKE_UM),
+            limit_um=ctx.interval(a.get("limit_um", [0, 38]), f"{p}.limit_um", max_abs=MAX_STROKE_UM),
         )
         if act.range_um[0] < act.limit_um[0] or act.range_um[1] > act.limit_um[1]:
             raise ctx.fail(
@@ -703,8 +715,8 @@ def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
         ctrl = SerialController(
             name=ctx.string(c["name"], f"{cp}.name"),
             url=ctx.string(c["url"], f"{cp}.url"),
-            baudrate=ctx.integer(c.get("baudrate", 115200), f"{cp}.baudrate", lo=1),
-            timeout_s=ctx.number(c.get("timeout_s", 1.0), f"{cp}.timeout_s", positive=True),
+            baudrate=ctx.integer(c.get("baudrate", 115200), f"{cp}.baudrate", lo=1, hi=MAX_BAUDRATE),
+            timeout_s=ctx.number(c.get("timeout_s", 1.0), f"{cp}.timeout_s", positive=True, hi=MAX_WAIT_S),
         )
         if any(ctrl.name == o.name for o in controllers):
             raise ctx.fail(f"{cp}.name", f"controller name '{ctrl.name}' is used twice")
@@ -719,44 +731,65 @@ def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
         ctrl = ctx.string(m["controller"], f"{ap}.controller")
         if ctrl not in names:
             raise ctx.fail(f"{ap}.controller", f"'{ctrl}' is not a configured controller; valid: {', '.join(names)}")
+        if isinstance(m["axis"], bool) or not isinstance(m["axis"], (str, int)):
+            raise ctx.fail(f"{ap}.axis", f"expected an axis id such as '1' or 'A', got {m['axis']!r}")
         axis = str(m["axis"]).strip()
         if not axis or any(ch.isspace() for ch in axis):
-            raise ctx.fail(f"{ap}.axis", f"'{m['axis']}' is not a valid axis id (no spaces)")
+            raise ctx.fail(f"{ap}.axis", f"{m['axis']!r} is not a valid axis id (no spaces)")
+        ctx.ascii_text(axis, f"{ap}.axis", what="an axis id")
+        if "=" in axis:
+            raise ctx.fail(f"{ap}.axis", f"'{axis}' is not a valid axis id ('=' separates axis and value in replies)")
         if (ctrl, axis) in used:
             raise ctx.fail(f"{ap}.axis", f"axis {axis} of {ctrl} is mapped to two actuators")
         used.add((ctrl, axis))
         axes.append((act, AxisMap(controller=ctrl, axis=axis)))
     gp = f"{p}.gauge"
     g = ctx.mapping(
-        raw["gauge"], gp, ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples", "zero_at_start"],
+        raw["gauge"], gp,
+        ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples", "zero_at_start", "tare_samples"],
         ["url"],
     )
     gd = Gauge(url="")
     pattern = g.get("reply_pattern", gd.reply_pattern)
     try:
-        import re
-
         compiled = re.compile(pattern)
     except (re.error, TypeError) as exc:
         raise ctx.fail(f"{gp}.reply_pattern", f"is not a valid regular expression: {exc}") from None
     if compiled.groups > 1:
         raise ctx.fail(f"{gp}.reply_pattern", "must have at most one capture group (the number)")
+    query = ctx.ascii_text(g.get("query", gd.query), f"{gp}.query", what="the gauge query")
+    eol = ctx.ascii_text(g.get("eol", gd.eol), f"{gp}.eol", what="the line ending", blank_ok=True, controls_ok=True)
+    if not eol.endswith(("\n", "\r")):
+        raise ctx.fail(f"{gp}.eol", f"{eol!r} must end with a line feed or carriage return, e.g. \"\\r\\n\"")
     gauge = Gauge(
         url=ctx.string(g["url"], f"{gp}.url"),
-        baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1),
-        timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True),
-        query=ctx.string(g.get("query", gd.query), f"{gp}.query"),
-        eol=ctx.string(g.get("eol", gd.eol), f"{gp}.eol", blank_ok=True),
+        baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1, hi=MAX_BAUDRATE),
+        timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True, hi=MAX_WAIT_S),
+        query=query,
+        eol=eol,
         reply_pattern=pattern,
         samples=ctx.integer(g.get("samples", gd.samples), f"{gp}.samples", lo=1, hi=10000),
         zero_at_start=ctx.boolean(g.get("zero_at_start", gd.zero_at_start), f"{gp}.zero_at_start"),
+        tare_samples=ctx.integer(g.get("tare_samples", gd.tare_samples), f"{gp}.tare_samples", lo=1, hi=10000),
     )
+    if gauge.zero_at_start:
+        for i, a in enumerate(stage.actuators):
+            if not a.range_um[0] <= 0.0 <= a.range_um[1]:
+                raise ctx.fail(
+                    f"{gp}.zero_at_start",
+                    f"tares the gauge at the zero state q = 0, but actuator {a.name} (stage.actuators[{i}]) has "
+                    f"range_um {list(a.range_um)}, which excludes 0; set zero_at_start: false or widen the range",
+                )
+    on_target_timeout_s = ctx.number(raw.get("on_target_timeout_s", 5.0), f"{p}.on_target_timeout_s",
+                                     positive=True, hi=MAX_WAIT_S)
+    poll_interval_s = ctx.number(raw.get("poll_interval_s", 0.005), f"{p}.poll_interval_s", positive=True,
+                                 hi=on_target_timeout_s)
     return SerialBackend(
         controllers=tuple(controllers),
         axes=tuple(axes),
         gauge=gauge,
-        on_target_timeout_s=ctx.number(raw.get("on_target_timeout_s", 5.0), f"{p}.on_target_timeout_s", positive=True),
-        poll_interval_s=ctx.number(raw.get("poll_interval_s", 0.005), f"{p}.poll_interval_s", positive=True),
+        on_target_timeout_s=on_target_timeout_s,
+        poll_interval_s=poll_interval_s,
         retries=ctx.integer(raw.get("retries", 2), f"{p}.retries", lo=0, hi=100),
     )
 
@@ -790,20 +823,70 @@ def parse_stage_config(data: Any, source: str = "<memory>") -> StageConfig:
     return StageConfig(stage=stage, backend=backend, source=source)
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses duplicate keys and reads ``1e-3`` as a number.
+
+    YAML 1.1 (PyYAML) silently keeps the last of two equal keys in a mapping and reads a
+    float without a dot (``1e-3``) as text; a config must not lose a field that way.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, yaml.Node] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.get(key)
+            except TypeError:  # an unhashable key: the base class says so
+                break
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"duplicate key {key!r} (first at line {first.start_mark.line + 1}); "
+                            "a key may appear once per mapping",
+                    problem_mark=key_node.start_mark,
+                )
+            seen[key] = key_node
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
 def load_yaml(path: str | Path) -> Any:
-    """Read a YAML file, turning I/O and syntax errors into :class:`ConfigError`."""
+    """Read a UTF-8 YAML file (a leading BOM is fine), turning every problem into :class:`ConfigError`.
+
+    Refused, each with the file and, where it applies, the line and column: an unreadable
+    file or a directory, bytes that are not UTF-8, invalid YAML, a key given twice in one
+    mapping, nesting too deep to read.
+    """
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
-        return yaml.safe_load(text)
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}, column {column} cannot be "
+            "decoded; save the file as UTF-8"
+        ) from None
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ConfigError(f"{path}: invalid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply to read") from None
 
 
 def load_stage_config(path: str | Path) -> StageConfig:

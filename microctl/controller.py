@@ -224,7 +224,7 @@ def _unreachable(target: float, s: np.ndarray, model: str, lo: float, hi: float)
     """The error for a target outside the interval ``model`` reaches from state ``s``."""
     state = ", ".join(f"{v:g}" for v in s)
     return UnreachableTargetError(
-        f"target {target:g} µm is unreachable from state [{state}]: the {model} reaches [{lo:.6g}, {hi:.6g}] µm")
+        f"target {target!r} µm is unreachable from state [{state}]: the {model} reaches [{lo!r}, {hi!r}] µm")
 
 
 # --------------------------------------------------------------------------- redundant set

@@ -12,6 +12,12 @@ gauge query, which then answers with one gauge-noise draw. So a serial-backend m
 each controller, ONT? polls, ERR?, one gauge query) consumes the same random draws as
 ``SimulatedStage.move`` and gives the same reading for the same seed.
 
+Start state: by default the actuators stand at 0 with the servo off and no error stored.
+For tests of a backend that must cope with any starting state, the emulated rig can start
+elsewhere (``start_q_um``: settled there physically, so the gauge reads that pose), with
+its axes still moving (``start_ont_polls``) and with an error left from an earlier session
+(``stale_errors``).
+
 Faults for tests (:class:`Fault`): a device that answers garbage, stays silent, reports
 ``ERR?`` 7, or drops the connection, from a given number of completed moves on.
 """
@@ -99,6 +105,7 @@ class _Handler(socketserver.BaseRequestHandler):
         except OSError:
             pass
         buf = b""
+        term = emu._terminator(server.device)
         while not emu._stopping.is_set():
             try:
                 chunk = sock.recv(4096)
@@ -109,10 +116,10 @@ class _Handler(socketserver.BaseRequestHandler):
             if not chunk:
                 return
             buf += chunk
-            if len(buf) > _MAX_LINE and b"\n" not in buf:
+            if len(buf) > _MAX_LINE and term not in buf:
                 buf = b""
-            while b"\n" in buf:
-                raw, buf = buf.split(b"\n", 1)
+            while term in buf:
+                raw, buf = buf.split(term, 1)
                 line = raw.decode("ascii", errors="replace").strip()
                 if not line:
                     continue
@@ -153,6 +160,15 @@ class Emulator:
         How many ``ONT?`` polls after a MOV answer 0 before the axes report on target.
     gauge_offset_um : float
         Constant added to every gauge reply (an un-tared gauge).
+    start_q_um : sequence of float, optional
+        Where the actuators stand when the emulator starts (config order, within each
+        ``limit_um``); ``POS?`` reports it and the platform is settled there (one physical
+        move, not counted in ``stage.moves``; the clock restarts at 0). Default: all 0.
+    start_ont_polls : int
+        How many ``ONT?`` polls per controller answer 0 before the first ``MOV`` (axes still
+        moving when a backend connects).
+    stale_errors : mapping of str to int, optional
+        Controller → GCS error code stored at start (left by an earlier session).
 
     Attributes
     ----------
@@ -170,6 +186,9 @@ class Emulator:
         faults: tuple[Fault, ...] | list[Fault] = (),
         ont_polls: int = 1,
         gauge_offset_um: float = 0.0,
+        start_q_um: "list[float] | tuple[float, ...] | np.ndarray | None" = None,
+        start_ont_polls: int = 0,
+        stale_errors: "dict[str, int] | None" = None,
     ):
         if host not in LOOPBACK_HOSTS:
             raise ConfigError(f"emulator host '{host}': only loopback (127.0.0.1) is served")
@@ -205,10 +224,27 @@ class Emulator:
         self._axis_index = {(ser.axis_of(n).controller, ser.axis_of(n).axis): i for i, n in enumerate(self.names)}
         self._limits = [a.limit_um for a in config.stage.actuators]
         self._q = np.zeros(len(self.names))
+        if start_q_um is not None:
+            q0 = np.asarray(start_q_um, dtype=float).reshape(-1)
+            if q0.size != len(self.names) or not np.all(np.isfinite(q0)):
+                raise ConfigError(f"start_q_um: give {len(self.names)} finite positions ({', '.join(self.names)}), "
+                                  f"got {list(np.atleast_1d(start_q_um))}")
+            for i, (name, (lo, hi)) in enumerate(zip(self.names, self._limits)):
+                if not lo <= q0[i] <= hi:
+                    raise ConfigError(f"start_q_um: {name} = {q0[i]:g} µm is beyond its limit_um [{lo:g}, {hi:g}]")
+            if np.any(q0 != 0):
+                self.stage.settle(q0)  # the rig stands there: the gauge reads that pose
+                self.stage.moves = 0
+                self.stage.time_s = 0.0
+            self._q = q0.copy()
         self._servo = np.zeros(len(self.names), dtype=bool)
         self._pending = False
-        self._ont_wait = {c: 0 for c in self.devices[:-1]}
+        self._ont_wait = {c: int(start_ont_polls) for c in self.devices[:-1]}
         self._err = {c: 0 for c in self.devices[:-1]}
+        for ctrl, code in (stale_errors or {}).items():
+            if ctrl not in self._err:
+                raise ConfigError(f"stale_errors: '{ctrl}' is not a controller ({', '.join(self.devices[:-1])})")
+            self._err[ctrl] = int(code)
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._servers: dict[str, _Server] = {}
@@ -259,6 +295,10 @@ class Emulator:
         return f"socket://{self.host}:{self.ports[device]}"
 
     # ---- protocol ------------------------------------------------------------------
+    def _terminator(self, device: str) -> bytes:
+        """The byte that ends a command line: LF for a controller, the gauge's eol's last byte."""
+        return self.gauge.eol.encode("ascii")[-1:] if device == "gauge" else b"\n"
+
     def _fault_for(self, device: str) -> Fault | None:
         for f in self.faults:
             if f.device == device and self.stage.moves >= f.after_moves:

@@ -22,6 +22,11 @@ from microctl.errors import ConfigError
 #: How far from 1 the length of a "unit" vector may be.
 UNIT_TOLERANCE = 1e-6
 
+#: Largest magnitude any number in a config file may have. No length, stiffness, time or
+#: tolerance of a micromanipulator comes near it, and products of such numbers stay far
+#: from overflowing a float (1e301 would overflow when squared).
+MAX_MAGNITUDE = 1e9
+
 
 class FieldReader:
     """Validating reader of one document.
@@ -59,17 +64,26 @@ class FieldReader:
                 raise self.fail(f"{path}.{key}" if path else str(key), "is required")
         return dict(value)
 
-    def number(self, value: Any, path: str, *, positive: bool = False, nonneg: bool = False) -> float:
-        """A finite number (optionally > 0 or >= 0)."""
+    def number(self, value: Any, path: str, *, positive: bool = False, nonneg: bool = False,
+               lo: float | None = None, hi: float | None = None, max_abs: float = MAX_MAGNITUDE) -> float:
+        """A finite number of magnitude at most ``max_abs`` (optionally > 0, >= 0, in [lo, hi])."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(path, f"expected a number, got {value!r}")
-        x = float(value)
+        try:
+            x = float(value)
+        except OverflowError:  # an integer too large for a float
+            raise self.fail(path, f"{value!r} is too large; the magnitude must be at most {max_abs:g}") from None
         if not math.isfinite(x):
             raise self.fail(path, f"expected a finite number, got {value!r}")
+        if abs(x) > max_abs:
+            raise self.fail(path, f"{value!r} is too large; the magnitude must be at most {max_abs:g}")
         if positive and x <= 0:
             raise self.fail(path, f"must be > 0, got {value!r}")
         if nonneg and x < 0:
             raise self.fail(path, f"must be >= 0, got {value!r}")
+        if (lo is not None and x < lo) or (hi is not None and x > hi):
+            rng = f">= {lo:g}" if hi is None else (f"<= {hi:g}" if lo is None else f"in [{lo:g}, {hi:g}]")
+            raise self.fail(path, f"must be {rng}, got {value!r}")
         return x
 
     def integer(self, value: Any, path: str, *, lo: int | None = None, hi: int | None = None) -> int:
@@ -87,6 +101,22 @@ class FieldReader:
             raise self.fail(path, f"expected a non-empty string, got {value!r}")
         return value
 
+    def ascii_text(self, value: Any, path: str, *, what: str, blank_ok: bool = False,
+                   controls_ok: bool = False) -> str:
+        """A non-empty string of ASCII characters (text sent to a device as ASCII bytes).
+
+        ``controls_ok``: control characters (CR, LF, ...) are allowed, e.g. in a line ending;
+        otherwise only printable ASCII (space to ``~``) is.
+        """
+        text = self.string(value, path, blank_ok=blank_ok)
+        for i, ch in enumerate(text):
+            code = ord(ch)
+            if code > 126 or (code < 32 and not controls_ok) or code == 0:
+                kind = "non-ASCII" if code > 127 else "control"
+                raise self.fail(path, f"{text!r}: character {i + 1} ({ch!r}) is a {kind} character; {what} "
+                                      "is sent to the device as ASCII, so use printable ASCII only")
+        return text
+
     def boolean(self, value: Any, path: str) -> bool:
         """true or false."""
         if not isinstance(value, bool):
@@ -100,14 +130,15 @@ class FieldReader:
             raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
         return value
 
-    def vector(self, value: Any, path: str, n: int | None = None) -> tuple[float, ...]:
-        """A list of ``n`` finite numbers (any non-empty length when ``n`` is None)."""
+    def vector(self, value: Any, path: str, n: int | None = None, *,
+               max_abs: float = MAX_MAGNITUDE) -> tuple[float, ...]:
+        """A list of ``n`` finite numbers of magnitude <= ``max_abs`` (any non-empty length when ``n`` is None)."""
         if not isinstance(value, (list, tuple)) or not value or (n is not None and len(value) != n):
             if n is None:
                 raise self.fail(path, f"expected a non-empty list of numbers, got {value!r}")
             got = f"{len(value)} values" if isinstance(value, (list, tuple)) else repr(value)
             raise self.fail(path, f"expected a list of {n} numbers, got {got}")
-        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+        return tuple(self.number(v, f"{path}[{i}]", max_abs=max_abs) for i, v in enumerate(value))
 
     def unit_vector(self, value: Any, path: str) -> tuple[float, float, float]:
         """A 3-vector of length 1 (± :data:`UNIT_TOLERANCE`)."""
@@ -119,9 +150,9 @@ class FieldReader:
             raise self.fail(path, f"has length {norm:.6g}, must be a unit vector (length 1 ± {UNIT_TOLERANCE})")
         return v  # type: ignore[return-value]
 
-    def interval(self, value: Any, path: str) -> tuple[float, float]:
-        """[lo, hi] with lo < hi."""
-        lo, hi = self.vector(value, path, 2)
+    def interval(self, value: Any, path: str, *, max_abs: float = MAX_MAGNITUDE) -> tuple[float, float]:
+        """[lo, hi] with lo < hi, both of magnitude <= ``max_abs``."""
+        lo, hi = self.vector(value, path, 2, max_abs=max_abs)
         if lo >= hi:
             raise self.fail(path, f"lower bound {lo:g} must be below upper bound {hi:g}")
         return (lo, hi)

@@ -5,13 +5,20 @@ Columns come from the stage config. For the Table I stage::
     seq,time_s,u_z,u_rx,u_ry,q1,q2,q3,q4,t_prev,q1_prev,q2_prev,q3_prev,q4_prev,t[,extra...]
 
 The writer appends, flushes and fsyncs one row per move, so a run cut short keeps every
-completed move. The reader enforces the spec's rules with errors naming the file, the row
-(its line number, header = line 1) and the column, and drops nothing.
+completed move; a row that cannot be written whole (a full disk) is cut off again, so the
+file always ends with the last complete row. The reader enforces the spec's rules with
+errors naming the file, the row (its line number, header = line 1) and the column, and
+drops nothing. It also refuses rows that no stage of the given config can have produced
+(see :func:`read_log`): a command outside the actuator ranges or inconsistent with the
+control signal, a gauge reading far beyond what the stage can reach, a clock that is
+negative or runs backwards.
 """
 
 from __future__ import annotations
 
 import csv
+import errno
+import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,10 +26,39 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from microctl.afm import AnalyticForwardModel
 from microctl.backends.base import Measurement
 from microctl.config import Stage
-from microctl.errors import DataError
+from microctl.errors import DataError, MicroctlError
 from microctl.tabular import parse_number, read_table
+
+#: How far a logged actuator command may lie outside its ``range_um`` (``*_prev``: outside its
+#: ``limit_um``) and how far it may differ from K u of the logged control signal, µm: the
+#: drivers' positioning accuracy (paper: 0.01 µm), so a log written with 4 decimals reads.
+LOG_Q_TOLERANCE_UM = 0.01
+
+#: A gauge reading ``t`` or ``t_prev`` is refused when its magnitude exceeds this many times
+#: the largest |t| the stage can reach (AFM over the workspace); such a value is a wrong unit,
+#: an untared gauge or a corrupt file, and would wreck a fit (y_scale = inf).
+T_PLAUSIBLE_FACTOR = 10.0
+
+#: Largest ``time_s`` accepted, s (about 30 years: the clock counts from the start of the run).
+MAX_TIME_S = 1e9
+
+#: Largest ``seq`` accepted (every integer up to it is exact in a float and in int64).
+MAX_SEQ = 2**53
+
+
+#: OS errors that are the machine's fault, not the user's (exit status 1, not 2).
+_ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EIO, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+class LogWriteError(MicroctlError):
+    """A measurement-log row could not be written (e.g. the disk is full).
+
+    An environment failure (exit status 1): the file keeps every row completed before, and
+    the message says how many.
+    """
 
 
 def pose_columns(stage: Stage) -> list[str]:
@@ -73,21 +109,46 @@ class MeasurementLogWriter:
             raise DataError(f"{self.path}: extra columns {list(self.extra_columns)} clash with the log columns")
         self.fsync = fsync
         try:
-            self._fh = self.path.open("w", newline="")
+            self._fh = self.path.open("wb", buffering=0)
         except OSError as exc:
-            raise DataError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
-        self._csv = csv.writer(self._fh, lineterminator="\n")
-        self._write(self.columns)
+            cls = LogWriteError if exc.errno in _ENVIRONMENT_ERRNOS else DataError
+            raise cls(f"{self.path}: cannot write: {exc.strerror or exc}") from None
+        self._size = 0
         self.rows = 0
+        try:
+            self._write(self.columns, what="the header")
+        except LogWriteError:
+            self.close()
+            raise
 
-    def _write(self, row: Sequence[str]) -> None:
-        self._csv.writerow(row)
-        self._fh.flush()
-        if self.fsync:
+    def _write(self, row: Sequence[str], *, what: str) -> None:
+        """Append one whole CSV line; on failure cut the file back to its last complete line."""
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerow(row)
+        data = buf.getvalue().encode("utf-8")
+        fd = self._fh.fileno()
+        try:
+            view = memoryview(data)
+            while view:
+                n = os.write(fd, view)
+                view = view[n:]
+            if self.fsync:
+                try:
+                    os.fsync(fd)
+                except OSError as exc:
+                    if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EROFS):  # e.g. a pipe or /dev/null
+                        raise
+        except OSError as exc:
             try:
-                os.fsync(self._fh.fileno())
+                os.ftruncate(fd, self._size)
+                os.lseek(fd, self._size, os.SEEK_SET)
             except OSError:
                 pass
+            raise LogWriteError(
+                f"{self.path}: cannot write {what}: {exc.strerror or exc}; the log keeps the "
+                f"{self.rows} completed move{'' if self.rows == 1 else 's'} written before"
+            ) from None
+        self._size += len(data)
 
     def write(
         self,
@@ -120,13 +181,16 @@ class MeasurementLogWriter:
         row += [_fmt(v) for v in s_prev]
         row.append(_fmt(m.t_um))
         row += ["" if extra.get(c) is None else str(extra[c]) for c in self.extra_columns]
-        self._write(row)
+        self._write(row, what=f"the row of move {self.rows + 1} (the move was executed)")
         self.rows += 1
 
     def close(self) -> None:
-        """Close the file (idempotent)."""
+        """Close the file (idempotent; every row is already on disk)."""
         if not self._fh.closed:
-            self._fh.close()
+            try:
+                self._fh.close()
+            except OSError:
+                pass
 
     def __enter__(self) -> "MeasurementLogWriter":
         return self
@@ -199,7 +263,8 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
     DataError
         Naming the file, the row (line number) and the column: missing required column,
         non-numeric or non-finite value, non-integer, duplicate or non-increasing ``seq``,
-        ``*_prev`` columns given only in part, too few rows.
+        ``seq`` above :data:`MAX_SEQ`, ``*_prev`` columns given only in part, too few rows;
+        and rows the stage cannot have produced (:func:`check_plausible`).
     """
     table = read_table(path, min_rows=0)
     p = table.path
@@ -214,6 +279,9 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
         raise DataError(f"{p}: {len(table.rows)} data rows, at least {min_rows} needed")
     seq_f = table.numeric("seq")
     for k, v in enumerate(seq_f):
+        if v > MAX_SEQ:
+            raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
+                            f"is too large (at most {MAX_SEQ})")
         if v != np.floor(v) or v < 0:
             raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
                             "is not a non-negative integer")
@@ -244,6 +312,7 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
     extra = {
         c: tuple(row[j] for row in table.rows) for j, c in enumerate(table.header) if c not in used
     }
+    check_plausible(p, stage, u, q, t, s_prev if present else None, time_s)
     arrays = [seq_f, u, q, t, s_prev] + ([time_s] if time_s is not None else [])
     for a in arrays:
         a.setflags(write=False)
@@ -252,3 +321,126 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
     return MeasurementLog(
         path=p, seq=seq, u=u, q=q, t=t, s_prev=s_prev, time_s=time_s, extra=extra, prev_from_columns=bool(present)
     )
+
+
+def plausible_t_bound_um(stage: Stage) -> float:
+    """Largest |t| (µm) a log or a state may hold: :data:`T_PLAUSIBLE_FACTOR` × the AFM's reach."""
+    lo, hi = AnalyticForwardModel(stage).t_range()
+    return T_PLAUSIBLE_FACTOR * max(abs(lo), abs(hi), 1.0)
+
+
+def check_plausible(
+    path: Path | str,
+    stage: Stage,
+    u: np.ndarray,
+    q: np.ndarray,
+    t: np.ndarray,
+    s_prev: np.ndarray | None = None,
+    time_s: np.ndarray | None = None,
+) -> None:
+    """Refuse log rows that no stage of this config can have produced.
+
+    Rules (each error names the file, the row and the column):
+
+    - u in the workspace: every K u (CAD inverse kinematics, eq. 12) within its actuator's
+      ``range_um`` ± :data:`LOG_Q_TOLERANCE_UM`;
+    - each q within its ``range_um`` ± the tolerance, and within the tolerance of K u;
+    - each ``*_prev`` q within its hardware ``limit_um`` ± the tolerance (a run may start
+      where another left the stage);
+    - |t| and |t_prev| at most :func:`plausible_t_bound_um`;
+    - ``time_s`` in [0, :data:`MAX_TIME_S`] and not decreasing from row to row.
+
+    Parameters
+    ----------
+    path : path
+        For messages.
+    stage : Stage
+    u : ndarray, shape (n, n_p)
+    q : ndarray, shape (n, n_q)
+    t : ndarray, shape (n,)
+    s_prev : ndarray, shape (n, 1 + n_q), optional
+        From ``*_prev`` columns (None: not in the file).
+    time_s : ndarray, shape (n,), optional
+
+    Raises
+    ------
+    DataError
+    """
+    if len(t) == 0:
+        return
+    afm = AnalyticForwardModel(stage)
+    names = stage.actuator_names
+    lo, hi = stage.range_lo, stage.range_hi
+    tol = LOG_Q_TOLERANCE_UM
+    ucols = ",".join(pose_columns(stage))
+
+    def row_of(bad: np.ndarray) -> int:
+        return int(np.argmax(bad))
+
+    Ku = u @ afm.K.T
+    bad = (Ku < lo - tol) | (Ku > hi + tol)
+    if bad.any():
+        k = row_of(bad.any(axis=1))
+        i = int(np.argmax(bad[k]))
+        raise DataError(
+            f"{path}: row {k + 2}, columns {ucols}: u = [{', '.join(f'{v:.6g}' for v in u[k])}] is outside the "
+            f"workspace: K u puts actuator {names[i]} at {Ku[k, i]:.4f} µm, outside its range "
+            f"[{lo[i]:g}, {hi[i]:g}] µm"
+        )
+    bad = (q < lo - tol) | (q > hi + tol)
+    if bad.any():
+        k = row_of(bad.any(axis=1))
+        i = int(np.argmax(bad[k]))
+        raise DataError(
+            f"{path}: row {k + 2}, column '{names[i]}': {q[k, i]:.6g} µm is outside the actuator's range "
+            f"[{lo[i]:g}, {hi[i]:g}] µm (range_um in the stage config; tolerance {tol:g} µm)"
+        )
+    bad = np.abs(q - Ku) > tol
+    if bad.any():
+        k = row_of(bad.any(axis=1))
+        i = int(np.argmax(bad[k]))
+        raise DataError(
+            f"{path}: row {k + 2}, column '{names[i]}': {q[k, i]:.6g} µm differs from K u = {Ku[k, i]:.6g} µm of "
+            f"this row's control signal by {abs(q[k, i] - Ku[k, i]):.3g} µm (tolerance {tol:g} µm); the log "
+            "does not belong to this stage geometry, or its q or u columns are wrong"
+        )
+    t_max = plausible_t_bound_um(stage)
+    tname = stage.tool.name
+    checks = [(tname, t)]
+    if s_prev is not None:
+        checks.append((f"{tname}_prev", s_prev[:, 0]))
+        q_prev = s_prev[:, 1:]
+        lim_lo = np.array([a.limit_um[0] for a in stage.actuators])
+        lim_hi = np.array([a.limit_um[1] for a in stage.actuators])
+        bad = (q_prev < lim_lo - tol) | (q_prev > lim_hi + tol)
+        if bad.any():
+            k = row_of(bad.any(axis=1))
+            i = int(np.argmax(bad[k]))
+            raise DataError(
+                f"{path}: row {k + 2}, column '{names[i]}_prev': {q_prev[k, i]:.6g} µm is outside the actuator's "
+                f"hardware limit [{lim_lo[i]:g}, {lim_hi[i]:g}] µm (limit_um in the stage config)"
+            )
+    for name, col in checks:
+        bad = np.abs(col) > t_max
+        if bad.any():
+            k = row_of(bad)
+            raise DataError(
+                f"{path}: row {k + 2}, column '{name}': {col[k]:.6g} µm is implausible: the stage reaches at most "
+                f"|t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm and readings beyond {T_PLAUSIBLE_FACTOR:g} times that are "
+                "refused (wrong unit, an untared gauge or a corrupt file?)"
+            )
+    if time_s is not None:
+        bad = (time_s < 0) | (time_s > MAX_TIME_S)
+        if bad.any():
+            k = row_of(bad)
+            raise DataError(
+                f"{path}: row {k + 2}, column 'time_s': {time_s[k]:.6g} s is outside [0, {MAX_TIME_S:g}] "
+                "(seconds since the start of the run)"
+            )
+        back = np.diff(time_s) < 0
+        if back.any():
+            k = row_of(back) + 1
+            raise DataError(
+                f"{path}: row {k + 2}, column 'time_s': {time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on "
+                f"row {k + 1}; time_s must not decrease in seq order"
+            )

@@ -2,12 +2,19 @@
 
 Rows are counted as the file's line numbers (the header is line 1), so an error points
 at the line a user would open in an editor.
+
+Numbers are read strictly: optional sign, digits with an optional decimal point, optional
+exponent (``-1.5``, ``.5``, ``2e-3``). Python's ``float()`` is more lenient (``1_0.5`` is 10.5
+to it, and it reads non-ASCII digits); such text is refused, not guessed at. Files are read
+as UTF-8; a leading byte-order mark (as spreadsheet programs write) is skipped.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -17,15 +24,27 @@ import numpy as np
 from microctl.errors import DataError
 
 
+#: A decimal number as a CSV field may hold it (ASCII only, no ``_`` separators).
+NUMBER_PATTERN = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+_NON_FINITE = {"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
+
+
 def parse_number(text: str, path: Path | str, line: int, column: str) -> float:
-    """One CSV field as a finite float, else a DataError naming file, row (line) and column."""
+    """One CSV field as a finite float, else a DataError naming file, row (line) and column.
+
+    Accepted: :data:`NUMBER_PATTERN` (surrounding spaces are ignored).
+    """
     text = text.strip()
-    try:
-        value = float(text)
-    except ValueError:
-        raise DataError(f"{path}: row {line}, column '{column}': '{text}' is not a number") from None
+    where = f"{path}: row {line}, column '{column}'"
+    if NUMBER_PATTERN.fullmatch(text) is None:
+        if text.lower() in _NON_FINITE:
+            raise DataError(f"{where}: value '{text}' is not finite")
+        raise DataError(f"{where}: {text!r} is not a number (expected e.g. 12, -0.5 or 1.5e-3; "
+                        "no '_', ',' or other separators)")
+    value = float(text)
     if not math.isfinite(value):
-        raise DataError(f"{path}: row {line}, column '{column}': value '{text}' is not finite")
+        raise DataError(f"{where}: value '{text}' is not finite (beyond the float range)")
     return value
 
 
@@ -90,25 +109,33 @@ def read_table(path: str | Path, *, min_rows: int = 1) -> Table:
     """
     path = Path(path)
     try:
-        with path.open(newline="") as fh:
-            reader = csv.reader(fh)
-            try:
-                header = tuple(h.strip() for h in next(reader))
-            except StopIteration:
-                raise DataError(f"{path}: the file is empty (expected a header row)") from None
-            rows = []
-            for line_no, row in enumerate(reader, start=2):
-                if not row or all(not c.strip() for c in row):
-                    raise DataError(f"{path}: row {line_no} is empty (blank lines are not allowed)")
-                if len(row) != len(header):
-                    raise DataError(
-                        f"{path}: row {line_no} has {len(row)} fields, the header has {len(header)}"
-                    )
-                rows.append(tuple(row))
+        raw = path.read_bytes()
     except OSError as exc:
         raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a text CSV file (undecodable bytes)") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise DataError(
+            f"{path}: not a text CSV file: byte 0x{raw[exc.start]:02x} on line {line} is not UTF-8"
+        ) from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        try:
+            header = tuple(h.strip() for h in next(reader))
+        except StopIteration:
+            raise DataError(f"{path}: the file is empty (expected a header row)") from None
+        rows = []
+        for line_no, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                raise DataError(f"{path}: row {line_no} is empty (blank lines are not allowed)")
+            if len(row) != len(header):
+                raise DataError(
+                    f"{path}: row {line_no} has {len(row)} fields, the header has {len(header)}"
+                )
+            rows.append(tuple(row))
+    except csv.Error as exc:
+        raise DataError(f"{path}: line {reader.line_num}: not a valid CSV line: {exc}") from None
     seen = set()
     for name in header:
         if name in seen:

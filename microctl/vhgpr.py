@@ -787,7 +787,7 @@ class FittedVHGPR:
         """
         path = Path(path)
         try:
-            npz = np.load(path, allow_pickle=False)
+            npz = _open_model_file(path)
         except FileNotFoundError:
             raise DataError(f"{path}: no such model file") from None
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
@@ -861,6 +861,7 @@ class FittedVHGPR:
         for name in _ARRAY_FIELDS + _OPTIONAL_ARRAY_FIELDS:
             if kw.get(name) is not None:
                 _freeze(kw[name])
+        _check_model_values(path, kw)
         return cls(**kw)
 
 
@@ -1276,3 +1277,185 @@ def _jsonable(obj: Any) -> Any:
         return None
     return obj
 
+
+
+# --------------------------------------------------------------------------- model-file checks (load)
+
+#: Largest predictive variance (units of y²) a loaded model may produce, far from the data or
+#: at its training inputs. Beyond it the controller's arithmetic overflows (OverflowError in
+#: ``solve``); no fitted model comes near it.
+_MAX_MODEL_VARIANCE = 1e100
+
+#: Largest |value| of a log-parameter (log variances, log lengthscales, mu0, log Lambda) in a
+#: model file; the fit keeps them within ±20 and exp(300) is still a finite float.
+_MAX_LOG_PARAMETER = 300.0
+
+#: Training rows at which a loaded model's factors and predictions are checked (evenly spaced).
+_N_CHECK_ROWS = 16
+
+#: Relative tolerance of the factor checks (rounding of a Cholesky factor of size n ≤ 1e5).
+_FACTOR_RTOL = 1e-8
+
+#: Tolerance of the standardisation checks (column mean 0, standard deviation 1 or 0).
+_STANDARD_TOL = 1e-5
+
+
+def _open_model_file(path: Path) -> Any:
+    """``np.load`` of a model file, once it is known to be a file holding a zip (.npz) archive.
+
+    A ValueError here becomes ``"<path>: not a VHGPR model file (.npz): <message>"`` in
+    :meth:`FittedVHGPR.load`, so its message is the reason only.
+    """
+    if path.is_dir():
+        raise ValueError("it is a directory; give the .npz file written by `microctl train` or `microctl gp fit`")
+    with path.open("rb") as fh:  # FileNotFoundError: load says "no such model file"
+        head = fh.read(64)
+    if not head:
+        raise ValueError("the file is empty")
+    if not head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        try:
+            first = head.decode("utf-8").splitlines()[0]
+            what = f"it is a text file starting with {first[:40]!r} (a CSV or YAML file?)"
+        except (UnicodeDecodeError, IndexError):
+            what = f"it starts with the bytes {head[:8]!r}, not a zip archive"
+        raise ValueError(f"{what}; a model file is the .npz archive written by `microctl train` or `microctl gp fit`")
+    npz = np.load(path, allow_pickle=False)
+    if isinstance(npz, np.lib.npyio.NpzFile):
+        try:
+            for name in npz.files:  # read once here, so that a wrong dtype is refused, not cast with a warning
+                try:
+                    a = npz[name]
+                except ValueError as exc:
+                    if "pickle" in str(exc):
+                        raise ValueError(f"array '{name}' holds Python objects (pickled data), which a model "
+                                         "file never does") from None
+                    raise
+                if name != "meta_json" and a.dtype.kind not in "biuf":
+                    raise ValueError(f"array '{name}' has dtype {a.dtype}; a model file holds real numbers")
+        except BaseException:
+            npz.close()
+            raise
+    return npz
+
+
+def _check_model_values(path: Path, kw: dict) -> None:
+    """Refuse a loaded model whose numbers cannot come from a fit (called at the end of load).
+
+    Checked, each failure one :class:`DataError` naming the file and the array:
+
+    - every array and parameter finite (``bound`` excepted: a record of the fit, NaN for a
+      model not fitted by optimisation); ``x_scale`` and ``y_scale`` > 0; every
+      log-parameter within ±:data:`_MAX_LOG_PARAMETER`;
+    - ``training_hash`` a SHA-256 hex digest;
+    - the stored arrays belong together: ``X`` standardised (column mean 0, standard
+      deviation 1, or 0 for a constant column); the outputs ``f_chol f_cholᵀ f_alpha``
+      standardised likewise (mean 0 only, with a linear prior mean); ``f_chol f_cholᵀ`` equal to K_f(X, X) off the
+      diagonal and above it on the diagonal; ``g_chol g_cholᵀ`` equal to K_g(X, X) + Λ⁻¹
+      (checked on :data:`_N_CHECK_ROWS` rows). The training hash itself cannot be recomputed
+      (the original y is not stored), but arrays edited or taken from two files fail here;
+    - the predictive variance far from the data and at the checked training inputs finite
+      and at most :data:`_MAX_MODEL_VARIANCE` (a huge variance overflows later, in solve).
+    """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        _check_model_arrays(path, kw)  # inf/nan from absurd values fail the checks; no RuntimeWarning
+
+
+def _check_model_arrays(path: Path, kw: dict) -> None:
+    """The checks of :func:`_check_model_values` (NumPy floating-point warnings silenced)."""
+    import re
+
+    def fail(message: str) -> DataError:
+        return DataError(f"{path}: {message}")
+
+    for name in _ARRAY_FIELDS + _OPTIONAL_ARRAY_FIELDS:
+        a = kw.get(name)
+        if a is None:
+            continue
+        bad = ~np.isfinite(a)
+        if bad.any():
+            idx = [int(i) for i in np.argwhere(bad)[0]]
+            raise fail(f"array '{name}' has a non-finite value ({a[tuple(idx)]}) at index {idx}; the model file is "
+                       "corrupt, retrain it")
+    for name in _FLOAT_FIELDS + _OPTIONAL_FLOAT_FIELDS:
+        v = kw[name]
+        if name != "bound" and v is not None and not math.isfinite(v):
+            raise fail(f"'{name}' = {v} is not finite; the model file is corrupt, retrain it")
+    if not kw["y_scale"] > 0:
+        raise fail(f"'y_scale' = {kw['y_scale']:g} must be > 0 (the standard deviation of the training outputs)")
+    if not np.all(kw["x_scale"] > 0):
+        raise fail(f"'x_scale' = {kw['x_scale'].tolist()} must be > 0 in every column")
+    logs = {n: np.atleast_1d(kw[n]) for n in ("f_log_lengthscales", "g_log_lengthscales", "log_lambda")}
+    logs.update({n: np.atleast_1d(kw[n]) for n in ("f_log_signal_var", "g_log_signal_var", "f_log_bias_var",
+                                                   "g_log_bias_var", "g_mu0", "f_log_linear_vars",
+                                                   "g_log_feature_coef") if kw.get(n) is not None})
+    for name, v in logs.items():
+        if v.size and np.max(np.abs(v)) > _MAX_LOG_PARAMETER:
+            raise fail(f"log-parameter '{name}' = {float(v[np.argmax(np.abs(v))]):g} is beyond "
+                       f"±{_MAX_LOG_PARAMETER:g}; the model file is corrupt, retrain it")
+    if not re.fullmatch(r"[0-9a-f]{64}", kw["training_hash"]):
+        raise fail(f"training_hash {kw['training_hash'][:24]!r} is not a SHA-256 hex digest (64 hex digits)")
+
+    X = kw["X"]
+    n, d = X.shape
+    col_mean, col_std = X.mean(axis=0), X.std(axis=0)
+    for j in range(d):
+        const_tol = _STANDARD_TOL * max(1.0, abs(float(kw["x_mean"][j])))
+        if abs(col_mean[j]) > _STANDARD_TOL or not (abs(col_std[j] - 1.0) <= _STANDARD_TOL or col_std[j] <= const_tol):
+            raise fail(f"the stored arrays do not belong together: column {j} of 'X' has mean {col_mean[j]:.3g} and "
+                       f"standard deviation {col_std[j]:.3g}, not the standardised 0 and 1 of a fit; the file was "
+                       "edited or assembled from two models, retrain it")
+    Lf, Lg = kw["f_chol"], kw["g_chol"]
+    if n > 1:
+        ys = Lf @ (Lf.T @ kw["f_alpha"])
+        if abs(float(ys.mean())) > _STANDARD_TOL or abs(float(ys.std()) - 1.0) > _STANDARD_TOL:
+            raise fail(f"the stored arrays do not belong together: the training outputs they encode "
+                       f"(f_chol f_cholᵀ f_alpha) have mean {ys.mean():.3g} and standard deviation {ys.std():.3g}, "
+                       "not the standardised 0 and 1 of a fit; the file was edited or assembled from two models, "
+                       "retrain it")
+    rows = np.unique(np.linspace(0, n - 1, min(n, _N_CHECK_ROWS)).astype(int))
+    kernels = {"f": Kernel(kw["f_log_lengthscales"], kw["f_log_signal_var"], kw["f_log_bias_var"],
+                           kw.get("f_log_linear_vars")),
+               "g": Kernel(kw["g_log_lengthscales"], kw["g_log_signal_var"], kw["g_log_bias_var"])}
+    for label, L in (("f", Lf), ("g", Lg)):
+        G = L[rows] @ L.T  # rows of L Lᵀ
+        Kr = kernels[label].matrix(X[rows], X)
+        diag_all = np.einsum("ij,ij->i", L, L)
+        tol = _FACTOR_RTOL * np.sqrt(np.outer(diag_all[rows], diag_all)) + 1e-300
+        off = np.ones_like(G, dtype=bool)
+        off[np.arange(len(rows)), rows] = False
+        diff = np.where(off, np.abs(G - Kr), 0.0)
+        excess = G[np.arange(len(rows)), rows] - Kr[np.arange(len(rows)), rows]
+        if label == "g":
+            want = np.exp(-kw["log_lambda"][rows])
+            diag_bad = np.abs(excess - want) > _FACTOR_RTOL * np.maximum(diag_all[rows], 1.0) * 1e2
+        else:
+            diag_bad = excess < -tol[np.arange(len(rows)), rows]
+        if (diff > tol).any() or diag_bad.any():
+            raise fail(f"the stored arrays do not belong together: {label}_chol is not the factor of the kernel of "
+                       f"'X' with the stored {label} hyperparameters (K_{label}(X, X)"
+                       f"{' + Λ⁻¹' if label == 'g' else ' + noise'}); the file was edited or assembled from two "
+                       "models, retrain it")
+
+    two_log_ys = 2.0 * math.log(kw["y_scale"])
+    log_kff = np.logaddexp(kw["f_log_signal_var"], kw["f_log_bias_var"] if kw["f_log_bias_var"] is not None else -np.inf)
+    kgg = math.exp(kw["g_log_signal_var"]) + (math.exp(kw["g_log_bias_var"]) if kw["g_log_bias_var"] is not None else 0.0)
+    log_max = math.log(_MAX_MODEL_VARIANCE)
+    for what, log_var in (("epistemic", two_log_ys + float(log_kff)),
+                          ("noise", kw["g_mu0"] + two_log_ys + 0.5 * kgg)):
+        if log_var > log_max:
+            raise fail(f"the model's {what} variance far from the data is e^{log_var:.4g} (units of y²), beyond "
+                       f"{_MAX_MODEL_VARIANCE:g} (y_scale = {kw['y_scale']:g}); later arithmetic would overflow: the "
+                       "file is corrupt or the fit diverged, retrain it")
+    model = FittedVHGPR(**kw)
+    X_orig = X[rows] * kw["x_scale"] + kw["x_mean"]
+    try:
+        with np.errstate(over="raise", invalid="raise"):
+            pred = model.predict(X_orig)
+    except (OverflowError, FloatingPointError, DataError) as exc:
+        raise fail(f"predicting at the training inputs overflows ({exc}); the file is corrupt or the fit "
+                   "diverged, retrain it") from None
+    worst = float(np.max(pred.y_var))
+    if not (np.all(np.isfinite(pred.y_mean)) and np.isfinite(worst)) or worst > _MAX_MODEL_VARIANCE:
+        raise fail(f"the model's predictive variance at its training inputs reaches {worst:.3g} (units of y²), beyond "
+                   f"{_MAX_MODEL_VARIANCE:g}; later arithmetic would overflow: the file is corrupt or the fit "
+                   "diverged, retrain it")

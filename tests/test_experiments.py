@@ -49,6 +49,15 @@ def quick_run(tmp_path_factory):
     return out, json.loads((out / "results.json").read_text())
 
 
+def test_outputs_listed_for_the_input_guard(quick_run):
+    """``experiment`` refuses an input in --out under a name it writes: the list must be complete."""
+    from microctl.commands.experiment import OUTPUTS
+
+    out, _ = quick_run
+    written = {p.name for p in out.iterdir()}
+    assert written <= set(OUTPUTS), written - set(OUTPUTS)
+
+
 def test_results_fields(quick_run):
     out, res = quick_run
     inc = res["incremental"]

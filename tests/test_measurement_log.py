@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from microctl.afm import inverse_kinematics_matrix
 from microctl.backends.base import Measurement
 from microctl.config import load_stage_config
 from microctl.errors import DataError
@@ -12,6 +13,7 @@ from microctl.measurement_log import MeasurementLogWriter, log_columns, read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = load_stage_config(ROOT / "configs/stage/table1.yaml").stage
+K = inverse_kinematics_matrix(STAGE)
 HEADER = "seq,time_s,u_z,u_rx,u_ry,q1,q2,q3,q4,t_prev,q1_prev,q2_prev,q3_prev,q4_prev,t"
 
 
@@ -27,7 +29,8 @@ def test_header_and_round_trip_with_extra(tmp_path):
     s = np.zeros(5)
     with MeasurementLogWriter(p, STAGE, extra_columns=("trial", "controller")) as w:
         for k in range(3):
-            m = Measurement(t_um=0.1 * k + 1 / 3, q_um=np.arange(4.0) + k, u=np.array([k, 0.1, -0.1]), time_s=k + 1.0)
+            u = np.array([5.0 + k, 0.1, -0.1])
+            m = Measurement(t_um=0.1 * k + 1 / 3, q_um=K @ u, u=u, time_s=k + 1.0)
             w.write(m, s, extra={"trial": 1, "controller": "afm"})
             # flushed row by row: readable while still open
             assert len(read_log(p, STAGE)) == k + 1

@@ -62,10 +62,13 @@ def test_serial_equals_simulated(moves):
     with Emulator(cfg, ont_polls=2) as emu:
         with make_backend(_pointed_at(cfg, emu)) as stage:
             assert isinstance(stage, SerialStage)
+            start = stage.state
             got = [stage.move(u) for u in moves]
             extra = stage.read()
         sent = [line for dev, line in emu.log if line.startswith("MOV")]
     sim = SimulatedStage(cfg)
+    t_connect = sim.read()  # the serial backend reads the gauge once at connect (the start state)
+    assert start.tolist() == pytest.approx([t_connect, 0, 0, 0, 0], abs=1e-5)
     want = [sim.move(u) for u in moves]
     assert np.allclose([m.t_um for m in got], [m.t_um for m in want], atol=1e-5)
     assert np.allclose(np.array([m.q_um for m in got]), np.array([m.q_um for m in want]))

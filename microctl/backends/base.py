@@ -75,7 +75,11 @@ class StageBackend(abc.ABC):
     # ---- state ---------------------------------------------------------------------
     @property
     def state(self) -> np.ndarray:
-        """s = [t; q] after the last move (the zero state before the first), shape (1 + n_q,)."""
+        """s = [t; q] after the last move, shape (1 + n_q,).
+
+        Before the first move: the backend's start state (the zero state unless the backend
+        reads where the stage stands, as the serial backend does at connect).
+        """
         return self._state.copy()
 
     def _set_state(self, t_um: float, q_um: np.ndarray) -> None:

@@ -4,16 +4,97 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Mapping
 
 import numpy as np
+
+from microctl.errors import ConfigError
 
 
 def add_quiet(parser: argparse.ArgumentParser) -> None:
     """Add ``--quiet`` (hide progress on stderr)."""
     parser.add_argument("--quiet", action="store_true", help="hide progress on stderr")
+
+
+def seed(text: str) -> int:
+    """argparse type of ``--seed``: a non-negative integer (what NumPy's generators take)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
+    return value
+
+
+def add_seed(parser: argparse.ArgumentParser, help_text: str) -> None:
+    """Add ``--seed S`` (a non-negative integer, default 0)."""
+    parser.add_argument("--seed", type=seed, default=0, metavar="S", help=help_text)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def check_output_file(path: str | Path, flag: str, inputs: Mapping[str, str | Path | None]) -> Path:
+    """Refuse an output file that is an input, a directory or in a missing folder (ConfigError, exit 2).
+
+    Parameters
+    ----------
+    path : path
+        The file the command will write.
+    flag : str
+        The option that named it (``-o``), for the message.
+    inputs : mapping
+        What each input is called (``"the stage config --config"``) → its path (None: not given).
+    """
+    path = Path(path)
+    for what, src in inputs.items():
+        if src is not None and _same_file(path, Path(src)):
+            raise ConfigError(f"{flag} {path}: is {what}; refusing to overwrite an input, choose another file name")
+    if path.is_dir():
+        raise ConfigError(f"{flag} {path}: is a directory, expected a file name to write")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise ConfigError(f"{flag} {path}: the folder '{parent}' does not exist")
+    return path
+
+
+def check_output_dir(path: str | Path, flag: str, inputs: Mapping[str, str | Path | None],
+                     writes: Iterable[str]) -> Path:
+    """Create (if needed) and test an output folder before any work (ConfigError, exit 2).
+
+    Refused: a path that is a file, a folder that cannot be created or written to, and a
+    folder holding an input under a name the command writes (``writes``), which would be
+    overwritten.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{flag} {path}: is a file; give a folder (it is created if missing)")
+    writes = set(writes)
+    for what, src in inputs.items():
+        if src is None:
+            continue
+        src = Path(src)
+        if src.name in writes and _same_file(src.parent, path):
+            raise ConfigError(f"{flag} {path}: the command writes {src.name} there, which is {what}; refusing to "
+                              "overwrite an input, choose another folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{flag} {path}: cannot write there: {exc.strerror or exc}") from None
+    return path
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -38,8 +119,16 @@ def print_json(obj: Any) -> None:
 
 
 def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` (atomically: temp file then rename)."""
+    """Write ``obj`` as indented JSON to ``path`` (atomically: temp file then rename).
+
+    On failure (a full disk) the temp file is removed and ``path`` is left as it was; the
+    ``OSError`` propagates (the command line reports it in one line, exit status 1).
+    """
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -8,7 +8,7 @@ import sys
 from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
 from microctl.collect import run_collect
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, add_seed, check_output_file
 from microctl.config import load_stage_config
 from microctl.design import DEFAULT_DESIGN, DESIGNS, training_moves
 
@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
     p.add_argument("-n", type=int, default=125, help="number of moves (default 125, as in the paper)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the move design (default 0)")
+    add_seed(p, "seed of the move design (default 0)")
     p.add_argument("--design", choices=DESIGNS, default=DEFAULT_DESIGN,
                    help=f"training design (default {DEFAULT_DESIGN}; see docs/experiments.md)")
     p.add_argument("-o", "--out", required=True, metavar="LOG.csv", help="measurement log to write")
@@ -37,10 +37,14 @@ def _run(args: argparse.Namespace) -> int:
     if args.n < 1:
         print(f"microctl: error: -n must be at least 1, got {args.n}", file=sys.stderr)
         return 2
+    check_output_file(args.out, "-o", {"the stage config --config": args.config})
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     moves = training_moves(afm, args.design, args.n, args.seed)
     with make_backend(config) as backend:
+        for note in getattr(backend, "notes", ()):
+            if not args.quiet:
+                print(f"collect: {note}", file=sys.stderr)
         n = run_collect(backend, moves, args.out, quiet=args.quiet)
     if not args.quiet:
         print(f"collect: {n} moves on the {config.backend.kind} backend written to {args.out}", file=sys.stderr)

@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, add_seed, check_output_dir
 from microctl.config import load_stage_config
-from microctl.errors import DataError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,10 +20,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", required=True, help="stage YAML file the data is compared with")
     p.add_argument("--holdout", help="second measurement log for the held-out gain (default: 5-fold cross-validation)")
     p.add_argument("--out", required=True, help="output directory (created)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the folds and GP fits (default 0)")
+    add_seed(p, "seed of the folds and GP fits (default 0)")
     p.add_argument("--no-gp", action="store_true", help="leave the GP variants out of the gain (faster)")
     add_quiet(p)
     p.set_defaults(func=_run)
+
+
+#: What ``diagnose`` writes into ``--out`` (an input there under one of these names is refused).
+OUTPUTS = ("report.json", "report.json.tmp", "report.md", "extended.yaml", "residuals.png", "causes.png", "gain.png")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -38,9 +40,9 @@ def _run(args: argparse.Namespace) -> int:
     holdout = None
     if args.holdout:
         holdout = data_from_log(read_log(args.holdout, cfg.stage), cfg.stage)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: --out must be a directory, a file is in the way")
+    out = check_output_dir(args.out, "--out", {"the measurement log LOG.csv": args.log,
+                                              "the stage config --config": args.config,
+                                              "the held-out log --holdout": args.holdout}, OUTPUTS)
     with Progress(2 * 20 + 5, "diagnose (fits)", quiet=args.quiet) as prog:
         diag = run_diagnosis(cfg, data, holdout=holdout, seed=args.seed, gp=not args.no_gp,
                              progress=lambda info: prog.step(1, info))

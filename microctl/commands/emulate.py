@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, seed
 from microctl.config import load_stage_config
 from microctl.emulator import Emulator, default_ports
 from microctl.errors import ConfigError
@@ -28,7 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="ports for the controllers (config order) then the gauge; default from the config's "
         "socket://127.0.0.1:P URLs",
     )
-    p.add_argument("--seed", type=int, default=None, help="override backend.simulated.seed")
+    p.add_argument("--seed", type=seed, default=None, help="override backend.simulated.seed (a non-negative integer)")
+    p.add_argument("--start-q", metavar="Q1,Q2,...", default=None,
+                   help="actuator positions (µm, config order) the emulated rig starts at (default: all 0)")
     add_quiet(p)
     p.set_defaults(func=_run)
 
@@ -44,10 +46,20 @@ def _parse_ports(text: str) -> list[int]:
     return ports
 
 
+def _parse_start_q(text: str | None) -> list[float] | None:
+    if text is None:
+        return None
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--start-q '{text}': expected comma-separated positions in µm") from None
+    return values
+
+
 def _run(args: argparse.Namespace, max_seconds: float | None = None) -> int:
     config = load_stage_config(args.config)
     ports = _parse_ports(args.ports) if args.ports else default_ports(config)
-    emu = Emulator(config, host=args.host, ports=ports, seed=args.seed)
+    emu = Emulator(config, host=args.host, ports=ports, seed=args.seed, start_q_um=_parse_start_q(args.start_q))
     bound = emu.start()
     try:
         for dev, port in bound.items():

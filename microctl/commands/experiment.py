@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, check_output_dir
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,6 +30,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
+#: What ``experiment`` writes into ``--out`` (an input there under one of these names is refused).
+OUTPUTS = ("config.yaml", "training_log.csv", "absolute_log.csv", "incremental_log.csv", "model.npz",
+           "results.json", "results.json.tmp", "report.md", "fig5_absolute.png", "fig6_incremental.png")
+
+
 def _run(args: argparse.Namespace) -> int:
     from microctl.experiments.config import load_experiment_config
     from microctl.experiments.runner import run_experiment
@@ -38,6 +43,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.seed_offset:
         cfg = cfg.with_seed_offset(args.seed_offset)
     out = Path(args.out) if args.out else Path("results") / Path(args.experiment).stem
+    check_output_dir(out, "--out", {"the experiment file": args.experiment, "its stage config": cfg.stage_path},
+                     OUTPUTS)
     res = run_experiment(cfg, out, quiet=args.quiet)
     if not args.quiet:
         inc = res.get("incremental")

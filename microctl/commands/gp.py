@@ -15,8 +15,8 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from microctl.commands._common import add_quiet
-from microctl.errors import DataError
+from microctl.commands._common import add_quiet, add_seed, check_output_file
+from microctl.errors import DataError, MicroctlError
 from microctl.progress import Progress
 from microctl.tabular import read_table
 
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("-o", "--output", required=True, type=Path, metavar="GP.npz", help="model file to write")
     fit.add_argument("--restarts", type=_positive_int, default=2, metavar="N",
                      help="optimisation runs in total, the first from a homoscedastic GP (default 2)")
-    fit.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the restarts (default 0)")
+    add_seed(fit, "seed of the restarts (default 0)")
     fit.add_argument("--bias", action="store_true", help="add a constant term to both kernels")
     add_quiet(fit)
     fit.set_defaults(func=_fit)
@@ -79,6 +79,7 @@ def _fit(args: argparse.Namespace) -> int:
     y_col = args.y.strip()
     if y_col in x_cols:
         raise DataError(f"--y '{y_col}' is also an input column in --x")
+    check_output_file(args.output, "-o", {"the data file DATA.csv": args.data})
     table = read_table(args.data, min_rows=2)
     X = table.numeric_columns(x_cols)
     y = table.numeric(y_col)
@@ -89,7 +90,6 @@ def _fit(args: argparse.Namespace) -> int:
             raise DataError(f"{args.data}: {exc}") from None
         progress.step(info=f"bound {model.bound:.4g}")
     model = dataclasses.replace(model, x_names=tuple(x_cols), y_name=y_col)
-    _check_writable(args.output)
     model.save(args.output)
     info = model.info
     print(f"fitted VHGPR to {X.shape[0]} rows of {args.data} ({', '.join(x_cols)} -> {y_col})")
@@ -102,26 +102,19 @@ def _fit(args: argparse.Namespace) -> int:
 def _predict(args: argparse.Namespace) -> int:
     from microctl.vhgpr import FittedVHGPR
 
+    check_output_file(args.output, "-o", {"the model file GP.npz": args.model, "the data file DATA.csv": args.data})
     model = FittedVHGPR.load(args.model)
     if not model.x_names:
         raise DataError(f"{args.model}: the model does not record its input column names")
     table = read_table(args.data, min_rows=1)
     X = table.numeric_columns(list(model.x_names))
     pred = model.predict(X)
-    _check_writable(args.output)
-    with args.output.open("w", newline="") as fh:
-        fh.write("mean,var\n")
-        for m, v in zip(pred.y_mean, pred.y_var):
-            fh.write(f"{float(m)!r},{float(v)!r}\n")
+    text = "mean,var\n" + "".join(f"{float(m)!r},{float(v)!r}\n" for m, v in zip(pred.y_mean, pred.y_var))
+    try:
+        args.output.write_text(text)
+    except OSError as exc:  # the folder was checked: this is the machine (full disk, I/O error), exit 1
+        raise MicroctlError(f"{args.output}: cannot write: {exc.strerror or exc}") from None
     return 0
-
-
-def _check_writable(path: Path) -> None:
-    if path.is_dir():
-        raise DataError(f"{path}: is a directory, expected a file name to write")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise DataError(f"{path}: directory '{parent}' does not exist")
 
 
 __all__ = ["register"]

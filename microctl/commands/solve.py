@@ -14,6 +14,7 @@ from microctl.config import load_stage_config
 from microctl.controller import R_E_SETTINGS, AFMController, ControllerSettings, OptimalController
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError
+from microctl.measurement_log import T_PLAUSIBLE_FACTOR, plausible_t_bound_um
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,7 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
-    """Parse ``--state`` (``t,q1,..``) into shape (n_s,); ConfigError naming the value."""
+    """Parse ``--state`` (``t,q1,..``) into shape (n_s,); ConfigError naming the value.
+
+    Each q must lie within its actuator's hardware ``limit_um`` (it may be outside ``range_um``:
+    a stage can be left there) and |t| within the bound a measurement log has
+    (:func:`~microctl.measurement_log.plausible_t_bound_um`).
+    """
     if text is None:
         return afm.zero_state()
     parts = [p.strip() for p in text.split(",")]
@@ -56,7 +62,37 @@ def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
             raise ConfigError(f"--state {text!r}: {name} = {p!r} is not a number") from None
         if not math.isfinite(out[k]):
             raise ConfigError(f"--state {text!r}: {name} = {p!r} is not finite")
+    for a, q in zip(afm.stage.actuators, out[1:]):
+        lo, hi = a.limit_um
+        if not lo <= q <= hi:
+            raise ConfigError(f"--state {text!r}: {a.name} = {q:g} µm is beyond the actuator's hardware limit "
+                              f"[{lo:g}, {hi:g}] µm (limit_um in the stage config); no stage can be there")
+    t_max = plausible_t_bound_um(afm.stage)
+    if abs(out[0]) > t_max:
+        raise ConfigError(f"--state {text!r}: {afm.state_names[0]} = {out[0]:g} µm is implausible: the stage reaches "
+                          f"at most |t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm and states beyond {T_PLAUSIBLE_FACTOR:g} "
+                          "times that are refused")
     return out
+
+
+def check_residual_model(path: str, afm: AnalyticForwardModel) -> None:
+    """Refuse a residual model whose outputs no stage of this config can have produced.
+
+    The residual y = t' − AFM t (µm) of a healthy or defective stage is at most of the size
+    of the readings a log may hold (:func:`~microctl.measurement_log.plausible_t_bound_um`);
+    a model whose training residuals had a larger mean or spread (``y_mean``, ``y_scale``)
+    was trained on something else, or edited, and would only make IPOPT fail.
+    """
+    from microctl.vhgpr import FittedVHGPR
+
+    model = FittedVHGPR.load(path)
+    bound = plausible_t_bound_um(afm.stage)
+    for name in ("y_mean", "y_scale"):
+        value = abs(float(getattr(model, name)))
+        if value > bound:
+            raise ConfigError(f"{path}: the residual model's {name} = {value:.4g} µm is beyond what stage "
+                              f"'{afm.stage.name}' can produce (|t| ≤ {bound:.6g} µm in a log); it was not trained "
+                              "on this stage's residuals, retrain it with `microctl train`")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -68,6 +104,7 @@ def _run(args: argparse.Namespace) -> int:
     state = parse_state(args.state, afm)
     if not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
+    check_residual_model(args.model, afm)
     eafm = EAFM(afm, args.model)
     settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa)
     base_ctrl = AFMController(afm, settings, reporter=eafm)

@@ -7,7 +7,7 @@ import sys
 import time
 
 from microctl.afm import AnalyticForwardModel
-from microctl.commands._common import add_quiet
+from microctl.commands._common import add_quiet, add_seed, check_output_file
 from microctl.config import load_stage_config
 from microctl.errors import ConfigError
 from microctl.measurement_log import read_log
@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"the mean correction's SE part (default {d.se}: kept only where the data pay for it)")
     p.add_argument("--restarts", type=int, default=d.restarts, metavar="N",
                    help=f"optimisation runs (default {d.restarts})")
-    p.add_argument("--seed", type=int, default=d.seed, metavar="S", help=f"seed of the restarts (default {d.seed})")
+    add_seed(p, f"seed of the restarts (default {d.seed})")
     add_quiet(p)
     p.set_defaults(func=_run)
 
@@ -53,6 +53,7 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # name the option, not the field: "residual model setting restarts: ..."
         field = str(exc).removeprefix("residual model setting ").split(":", 1)[0]
         raise ConfigError(f"--{field.replace('_', '-')}:{str(exc).split(':', 1)[1]}") from None
+    check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)

@@ -297,6 +297,8 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     stage_path = Path(stage_raw)
     if not stage_path.is_absolute():
         stage_path = (base_dir / stage_path).resolve()
+    if stage_path.is_dir():
+        raise ck.fail("stage", f"'{stage_raw}' is a directory ({stage_path}); give the path of a stage config file")
     if not stage_path.is_file():
         raise ck.fail("stage", f"stage config '{stage_raw}' not found (looked for {stage_path})")
     stage_config = load_stage_config(stage_path)

@@ -83,15 +83,19 @@ class MoveRecorder:
         self.writer = MeasurementLogWriter(self.path, config.stage, extra_columns=extra_columns)
         self._clock_offset_s = 0.0
         self._last_time_s = 0.0
+        self._last_backend: StageBackend | None = None  # held, so its id cannot be reused
 
     @property
     def rows(self) -> int:
         return self.writer.rows
 
     def new_stage(self) -> None:
-        """A fresh stage starts its clock at 0: keep ``time_s`` increasing across stages."""
-        self._clock_offset_s += self._last_time_s
-        self._last_time_s = 0.0
+        """A trial begins: keep ``time_s`` increasing across stages.
+
+        Only a *fresh* backend (its clock starts at 0) adds the time run so far; the shared
+        serial backend keeps its own clock running, so adding it again would count the
+        elapsed time twice (see :meth:`move`, which decides by the backend object).
+        """
 
     def move(self, backend: StageBackend, u: np.ndarray, **extra: Any) -> tuple[Measurement, np.ndarray]:
         """Execute ``u`` (shape (n_p,)) and log it.
@@ -102,6 +106,11 @@ class MoveRecorder:
         s_prev : ndarray, shape (n_s,)
             The state before the move.
         """
+        if backend is not self._last_backend:
+            if self._last_backend is not None:  # a fresh stage: its clock restarted at 0
+                self._clock_offset_s += self._last_time_s
+            self._last_backend = backend
+            self._last_time_s = 0.0
         s_prev = backend.state
         m = backend.move(u)
         self._last_time_s = m.time_s
