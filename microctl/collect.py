@@ -17,7 +17,25 @@ from microctl.errors import BackendError
 from microctl.measurement_log import MeasurementLogWriter
 from microctl.progress import Progress
 
-__all__ = ["run_collect", "training_moves", "space_filling_moves"]
+__all__ = ["run_collect", "execute_moves", "training_moves", "space_filling_moves"]
+
+
+def execute_moves(backend: StageBackend, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Execute moves on a backend and keep the log's arrays in memory (no file; for benchmarks).
+
+    Returns
+    -------
+    s_prev : ndarray, shape (n, n_s)
+        State before each move.
+    u : ndarray, shape (n, n_p)
+    t : ndarray, shape (n,)
+        Gauge reading after each move (µm).
+    """
+    s_prev, t = [], []
+    for u in np.atleast_2d(moves):
+        s_prev.append(backend.state)
+        t.append(backend.move(u).t_um)
+    return np.array(s_prev), np.atleast_2d(moves).astype(float), np.array(t)
 
 
 def run_collect(

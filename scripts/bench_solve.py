@@ -43,6 +43,7 @@ from microctl.config import load_stage_config  # noqa: E402
 from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
 from microctl.eafm import EAFM, bind_to_stage  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
+from microctl.collect import execute_moves  # noqa: E402
 from microctl.design import training_moves  # noqa: E402
 from microctl.training import (ResidualData, ResidualModelSettings, fixed_hyperparameter_model,  # noqa: E402
                                train_residual_model)
@@ -73,14 +74,9 @@ def build_model(afm, n, seed, fit, fit_time):
     elif fit == "physical":
         # what `collect` + `train` give with the defaults: n covering moves on the simulated rig
         cfg = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
-        moves = training_moves(afm, "covering", n, seed)
-        S, U, T = [], [], []
         with SimulatedStage(cfg, seed=seed) as st:
-            for u in moves:
-                S.append(st.state)
-                T.append(st.move(u).t_um)
-                U.append(u)
-        data = ResidualData(np.hstack([np.array(S), np.array(U)]), np.array(T) - afm.t_of(np.array(U)), ())
+            S, U, T = execute_moves(st, training_moves(afm, "covering", n, seed))
+        data = ResidualData(np.hstack([S, U]), T - afm.t_of(U), ())
         return train_residual_model(data, afm, ResidualModelSettings(restarts=1), max_time=fit_time), \
             time.perf_counter() - t0
     else:

@@ -20,6 +20,7 @@ import pytest
 
 from microctl.afm import AnalyticForwardModel
 from microctl.backends.simulated import SimulatedStage
+from microctl.collect import execute_moves
 from microctl.config import ActuatorFriction, ActuatorGain, load_stage_config
 from microctl.controller import ControllerSettings, OptimalController, RedundantSet
 from microctl.design import training_moves
@@ -57,15 +58,9 @@ def test_hidden_stick_slip_is_found_and_avoided(actuator):
     and the largest other one below a fifth of it."""
     cfg = _rig(actuator, 0.05, seed=100 + actuator)
     afm = AnalyticForwardModel(cfg.stage)
-    moves = training_moves(afm, "covering", 200, seed=actuator)
-    S, U, T = [], [], []
     with SimulatedStage(cfg, seed=actuator) as st:
-        for u in moves:
-            S.append(st.state)
-            T.append(st.move(u).t_um)
-            U.append(u)
-    model = train_residual_model(residual_dataset(_Log(np.array(S), np.array(U), np.array(T)), afm), afm,
-                                 ResidualModelSettings())
+        S, U, T = execute_moves(st, training_moves(afm, "covering", 200, seed=actuator))
+    model = train_residual_model(residual_dataset(_Log(S, U, T), afm), afm, ResidualModelSettings())
     summary = noise_summary(model, afm)["actuators"]
     gain = next(g.gain for g in cfg.backend.simulated.effects.actuator_gain if g.actuator == actuator)
     planted = summary[f"q{actuator}"]["friction_std_per_um"]
