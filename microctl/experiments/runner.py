@@ -299,7 +299,8 @@ def _controllers(run: _Run, eafm: EAFM) -> dict:
         if name == "afm":
             out[name] = AFMController(run.afm, cfg.controller, reporter=eafm)
         elif name == "eafm":
-            out[name] = OptimalController(eafm, cfg.controller)
+            # with the AFM baseline: each result says whether its pose is credibly quieter
+            out[name] = OptimalController(eafm, cfg.controller, baseline=AFMController(run.afm, cfg.controller))
         else:
             o = cfg.oracle
             out[name] = OracleController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
@@ -319,7 +320,8 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
     with Progress(len(ctrls) * T * J, "incremental movement", quiet=run.quiet) as pr:
         for name, ctrl in ctrls.items():
             r = {key: np.full((T, J), np.nan) for key in
-                 ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s")}
+                 ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s",
+                  "prob_quieter_than_afm")}
             r["q_um"] = np.full((T, J, afm.n_q), np.nan)
             r["status"] = [[""] * J for _ in range(T)]
             r["fallbacks"] = 0
@@ -345,6 +347,8 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                         r["solve_time_s"][k, j] = sol.solve_time_s
                         r["q_um"][k, j] = sol.q
                         r["status"][k][j] = sol.status
+                        if sol.vs_baseline is not None:
+                            r["prob_quieter_than_afm"][k, j] = sol.vs_baseline.prob_quieter
                         prev_u = sol.u
                         pr.step(info=f"{name} trial {k + 1} target {target:g} µm")
             res[name] = r
