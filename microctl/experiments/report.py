@@ -71,7 +71,7 @@ def incremental_stats(inc: dict) -> dict:
         if np.any(np.isfinite(r["prob_quieter_than_afm"])):
             # P(noise at the chosen pose < at the AFM baseline's), per trial and target (the EAFM's posterior)
             c["prob_quieter_than_afm"] = r["prob_quieter_than_afm"]
-            c["credibly_quieter_than_afm"] = int(np.sum(r["prob_quieter_than_afm"] >= 0.95))
+            c["credibly_quieter_than_afm"] = int(np.nansum(r["credibly_quieter_than_afm"]))  # at credible_level
         if np.any(np.isfinite(r["true_mean_um"])):
             c["true_mean_um"] = r["true_mean_um"]
             c["true_std_um"] = r["true_std_um"]

@@ -321,7 +321,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
         for name, ctrl in ctrls.items():
             r = {key: np.full((T, J), np.nan) for key in
                  ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s",
-                  "prob_quieter_than_afm")}
+                  "prob_quieter_than_afm", "credibly_quieter_than_afm")}
             r["q_um"] = np.full((T, J, afm.n_q), np.nan)
             r["status"] = [[""] * J for _ in range(T)]
             r["fallbacks"] = 0
@@ -349,6 +349,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                         r["status"][k][j] = sol.status
                         if sol.vs_baseline is not None:
                             r["prob_quieter_than_afm"][k, j] = sol.vs_baseline.prob_quieter
+                            r["credibly_quieter_than_afm"][k, j] = float(sol.vs_baseline.credible)
                         prev_u = sol.u
                         pr.step(info=f"{name} trial {k + 1} target {target:g} µm")
             res[name] = r
