@@ -413,7 +413,7 @@ class EAFMController(_BaseController):
                  name: str | None = None):
         super().__init__(eafm.afm, settings)
         if not isinstance(objective, Objective):
-            raise ConfigError(f"objective must provide name, needs, mx() and np(); got {type(objective).__name__}")
+            raise ConfigError(f"objective must provide name, needs, mx() and evaluate(); got {type(objective).__name__}")
         if name is not None:
             self.name = name
         self.eafm = eafm
@@ -425,7 +425,7 @@ class EAFMController(_BaseController):
         self._build()
 
     def _objective_np(self, s: np.ndarray, U: np.ndarray, seeding: bool = False) -> np.ndarray:
-        return self.objective.np(self.eafm, s, U, seeding=seeding)
+        return self.objective.evaluate(self.eafm, s, U, seeding=seeding)
 
     # ---- NLP -------------------------------------------------------------------------
     def _build(self) -> None:

@@ -61,7 +61,7 @@ class Objective(Protocol):
         """The objective as a CasADi expression of the state, the pose and the EAFM quantities."""
         ...
 
-    def np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+    def evaluate(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         """The objective at the rows of U (shape (m, n_p)) from state s, shape (m,)."""
         ...
 
@@ -121,7 +121,7 @@ class NoiseVariance:
             r = r + eafm.predict(s, U).f_var
         return r
 
-    def np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+    def evaluate(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         return -np.expm1(-self.r_np(eafm, s, U, seeding=seeding))
 
 
@@ -135,5 +135,5 @@ class SmallestMotion:
     def mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
         return ca.sumsqr(ca.mtimes(ca.DM(K), u) - s[1:])
 
-    def np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+    def evaluate(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         return np.sum((U @ eafm.afm.K.T - s[None, 1:]) ** 2, axis=1)
