@@ -136,6 +136,7 @@ class EAFM:
         self._kf = model.f_kernel
         self._kg = model.g_kernel
         self._gm = model.g_prior_mean
+        self._gm_evidence = model.g_prior_mean_with_uncertainty
         self._x_mean = np.asarray(model.x_mean, dtype=float)
         self._x_scale = np.asarray(model.x_scale, dtype=float)
         self._log_y2 = 2.0 * math.log(model.y_scale)
@@ -281,29 +282,29 @@ class EAFM:
 
     def noise_uncertainty(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """How uncertain the predicted log noise variance is at many u, shape (m,): g's GP
-        variance plus the parametric prior mean's parameter variance (whether or not the model
-        propagates the latter into ``g_var``; :meth:`FittedVHGPR.noise_parameter_variance`)."""
-        X = self._x(s, U)
-        xs = (X - self._x_mean) / self._x_scale
+        variance plus the parametric prior mean's parameter variance, whether or not the model
+        propagates the latter into ``g_var`` (:attr:`FittedVHGPR.g_prior_mean_with_uncertainty`)."""
+        xs = (self._x(s, U) - self._x_mean) / self._x_scale
         if self.model.g_gp_var_negligible:
             gp = self._kg.diag(xs)
         else:
             Kg = self._kg.matrix(xs, self.model.X)
             v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
             gp = np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
-        prior = self._gm.variance(xs) if self._gm.coef_cov is not None else self.model.noise_parameter_variance(X)
-        return gp + prior
+        return gp + self._gm_evidence.variance(xs)
 
     def g_joint(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint posterior of the log noise variance at the rows of U: mean (m,), covariance (m, m).
 
         ``cov = K_g(X*, X*) - V^T V + cov of the prior mean``, ``V = L_g^-1 K_g(X, X*)``
-        (notes/vhgpr.md prediction, for several points at once).
+        (notes/vhgpr.md prediction, for several points at once); the prior mean's parameter
+        covariance is included whether or not the model propagates it into ``g_var`` (this
+        is for comparing poses on the evidence: :func:`microctl.controller.compare_noise`).
         """
         xs = (self._x(s, U) - self._x_mean) / self._x_scale
         Kg = self._kg.matrix(xs, self.model.X)
         mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
-        cov = self._kg.matrix(xs, xs) + self._gm.covariance(xs, xs)
+        cov = self._kg.matrix(xs, xs) + self._gm_evidence.covariance(xs, xs)
         if not self.model.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
             V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
             cov = cov - V.T @ V

@@ -638,16 +638,16 @@ class FittedVHGPR:
         return LogVarianceMean(self.g_feature_matrix, self.g_feature_offset, self.g_mu0, self.g_log_feature_coef,
                                self.g_mean_coef_cov)
 
-    def noise_parameter_variance(self, X: Any) -> np.ndarray:
-        """Variance of g's parametric prior mean at the rows of X (``noise_prior`` eq. 2), shape (m,),
-        from the covariance kept in ``info`` whether or not it is propagated into g's variance
-        (zeros for the paper's constant prior mean)."""
-        X = self._check_X(X)
+    @property
+    def g_prior_mean_with_uncertainty(self) -> LogVarianceMean:
+        """g's prior mean carrying its parameters' covariance whether or not the model propagates
+        it into g's variance (from ``info["noise_parameters"]``): for questions of evidence (is a
+        pose credibly quieter, where is the noise model least certain), not for the objective."""
+        gm = self.g_prior_mean
         params = self.info.get("noise_parameters") or {}
-        if self.g_feature_matrix is None or "c_cov" not in params:
-            return np.zeros(X.shape[0])
-        gm = replace(self.g_prior_mean, coef_cov=np.asarray(params["c_cov"], dtype=float))
-        return gm.variance((X - self.x_mean) / self.x_scale)
+        if gm.coef_cov is not None or self.g_feature_matrix is None or "c_cov" not in params:
+            return gm
+        return replace(gm, coef_cov=np.asarray(params["c_cov"], dtype=float))
 
     @property
     def g_gp_var_negligible(self) -> bool:

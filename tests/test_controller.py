@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import math
 from pathlib import Path
 
 import casadi as ca
@@ -212,3 +213,21 @@ def test_bad_settings_and_state(eafm, opt):
         ControllerSettings(r_e="variance")
     with pytest.raises(ConfigError, match="state"):
         opt.solve(1.0, np.zeros(3))
+
+
+def test_compare_noise_probability(afm, eafm, opt):
+    """P(g_a < g_b) from the joint posterior, recomputed here from eafm.g_joint and the normal
+    CDF written out with math.erf; complementary in a and b; the planted quiet well's pose is
+    credibly quieter than a pose outside it (their noise stds differ 10x: 0.02 vs 0.2 µm)."""
+    from microctl.controller import compare_noise
+
+    s = afm.zero_state()
+    quiet = opt.solve(20.0, s)
+    far = AFMController(afm).solve(20.0, s)
+    c = compare_noise(eafm, s, quiet.u, far.u)
+    mean, cov = eafm.g_joint(s, np.vstack([quiet.u, far.u]))
+    sd = math.sqrt(cov[0, 0] + cov[1, 1] - 2 * cov[0, 1])
+    p = 0.5 * (1 + math.erf(-(mean[0] - mean[1]) / sd / math.sqrt(2)))
+    assert c.prob_quieter == pytest.approx(p, rel=1e-9)
+    assert compare_noise(eafm, s, far.u, quiet.u).prob_quieter == pytest.approx(1 - p, abs=1e-12)
+    assert c.credible and c.prob_quieter > 0.99
