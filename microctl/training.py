@@ -16,7 +16,7 @@ import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import scipy.linalg as sla
@@ -29,7 +29,7 @@ from microctl.noise_prior import NoiseFeatures
 from microctl.vhgpr import VHGPR, FittedVHGPR, ard_se
 
 __all__ = ["NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
-           "train_residual_model", "noise_summary", "fixed_hyperparameter_model", "save_model"]
+           "noise_features_for", "train_residual_model", "noise_summary", "fixed_hyperparameter_model", "save_model"]
 
 
 @dataclass(frozen=True)
@@ -128,18 +128,38 @@ class ResidualModelSettings:
                               "the SE part the mean correction would be a constant); use se: auto or on")
 
 
-def actuator_step_features(afm: AnalyticForwardModel) -> NoiseFeatures:
+def actuator_step_features(afm: AnalyticForwardModel, actuators: Sequence[int] | None = None) -> NoiseFeatures:
     """The actuator steps ``dq_i = K_i u - q_i,prev`` (eq. 12) as linear maps of x = [s; u] (eq. 3).
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    actuators : sequence of int, optional
+        1-based actuator numbers to include (default: every actuator).
 
     Returns
     -------
     NoiseFeatures
-        ``matrix`` shape (n_q, n_s + n_p): row i has -1 at ``q_i,prev`` and K_i on u.
+        ``matrix`` shape (p, n_s + n_p): row j has -1 at ``q_i,prev`` and K_i on u.
     """
-    A = np.zeros((afm.n_q, afm.n_s + afm.n_p))
-    A[np.arange(afm.n_q), 1 + np.arange(afm.n_q)] = -1.0  # s = [t_prev; q_prev]
-    A[:, afm.n_s:] = afm.K
-    return NoiseFeatures(A, np.zeros(afm.n_q), tuple(f"d{name}" for name in afm.actuator_names))
+    idx = np.arange(afm.n_q) if actuators is None else np.array(sorted(set(actuators)), dtype=int) - 1
+    A = np.zeros((idx.size, afm.n_s + afm.n_p))
+    A[np.arange(idx.size), 1 + idx] = -1.0  # s = [t_prev; q_prev]
+    A[:, afm.n_s:] = afm.K[idx]
+    return NoiseFeatures(A, np.zeros(idx.size), tuple(f"d{afm.actuator_names[i]}" for i in idx))
+
+
+def noise_features_for(afm: AnalyticForwardModel) -> NoiseFeatures:
+    """The physical noise model's features for a stage.
+
+    Every actuator's step, unless the stage's corrections carry diagnosed stick-slip
+    (``stage.corrections.actuator_friction``, written into ``extended.yaml`` by ``microctl
+    diagnose``): then exactly the actuators the diagnosis found it on, so the model does not
+    spend data on (or fear) a friction the diagnosis ruled out; g's GP still models what the
+    diagnosed physics leaves.
+    """
+    diagnosed = afm.stage.corrections.actuator_friction
+    return actuator_step_features(afm, [c.actuator for c in diagnosed] if diagnosed else None)
 
 
 def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
@@ -163,7 +183,7 @@ def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
         and ``u_*`` names, ``y_name = "residual_um"``.
     """
     st = settings or ResidualModelSettings()
-    features = actuator_step_features(afm) if st.noise_model == "physical" else None
+    features = noise_features_for(afm) if st.noise_model == "physical" else None
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
     model = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
@@ -190,7 +210,8 @@ def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
     out: dict = {"noise_model": model.noise_model}
     if model.noise_model != "physical":
         return out
-    sens = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
+    sens_all = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
+    sens = [sens_all[afm.actuator_names.index(f.removeprefix("d"))] for f in model.g_feature_names]
     c = np.exp(np.asarray(model.g_log_feature_coef))
     params = model.info.get("noise_parameters") or {}
     c_std = np.asarray(params.get("c_std", [math.nan] * (1 + c.size)), dtype=float)

@@ -112,3 +112,19 @@ def test_unvisited_corner_is_not_chosen_on_an_optimistic_prediction():
     assert median.u[1] > rx_cut + 0.05, "the test would be vacuous: the median does not go to the corner"
     assert cautious.u[1] <= rx_cut + 0.02
     assert cautious.noise_upper_std_um < median.noise_upper_std_um
+
+
+def test_diagnosed_friction_restricts_the_noise_features():
+    """A stage whose corrections carry diagnosed stick-slip (extended.yaml) gets noise features
+    for exactly those actuators; without, every actuator's."""
+    from microctl.training import noise_features_for
+
+    cfg = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
+    afm = AnalyticForwardModel(cfg.stage)
+    assert noise_features_for(afm).names == ("dq1", "dq2", "dq3", "dq4")
+    corr = replace(cfg.stage.corrections, actuator_friction=(ActuatorFriction(actuator=4, std_per_um=0.1),))
+    afm4 = AnalyticForwardModel(replace(cfg.stage, corrections=corr))
+    f = noise_features_for(afm4)
+    assert f.names == ("dq4",)
+    x = np.concatenate([[1.0], [3.0, 5.0, 7.0, 11.0], [2.0, 0.1, -0.2]])  # [t_prev, q_prev, u]
+    assert f.values(x[None, :])[0, 0] == pytest.approx(float(afm.K[3] @ x[5:] - 11.0))
