@@ -301,9 +301,13 @@ class SequenceController(EAFMController):
                 V = tot[b, np.arange(tot.shape[1])]
                 score = V
             else:
+                # exact minimax (the worst move so far); among predecessors with the same worst
+                # move, the smaller cumulative r_e (a tie-break only: (max, sum) has no exact
+                # one-label DP)
                 M = np.maximum(Vm[:, None], C)
                 Ssum = Vs[:, None] + C
-                b = np.argmin(M + MAX_TIE_WEIGHT * Ssum / T, axis=0)
+                tie = M <= M.min(axis=0) * (1.0 + 1e-12)
+                b = np.argmin(np.where(tie, Ssum, np.inf), axis=0)
                 cols = np.arange(C.shape[1])
                 Vm, Vs = M[b, cols], Ssum[b, cols]
                 score = Vm + MAX_TIE_WEIGHT * Vs / T
