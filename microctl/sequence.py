@@ -386,12 +386,12 @@ class SequenceController(EAFMController):
         targets = self._targets(targets_um)
         T = len(targets)
         n_p = self.afm.n_p
-        cand, value_grid, _, shape, back = self._dp(s0, targets)
+        cand, value_grid, last_idx, shape, back = self._dp(s0, targets)
         mins = _grid_local_minima(value_grid, shape)
         mins = mins[np.argsort(value_grid[mins])]
         # grid index of the last step -> candidate index
         pos = np.full(value_grid.size, -1)
-        pos[np.flatnonzero(np.isfinite(value_grid))] = np.arange(int(np.isfinite(value_grid).sum()))
+        pos[last_idx] = np.arange(last_idx.size)
         starts: list[tuple[np.ndarray, bool]] = []
         if u_init is not None:
             W = np.atleast_2d(np.asarray(u_init, dtype=float))

@@ -24,6 +24,10 @@ sequence oracle's at the same step by more than ``--large`` (2) times.
 
 Bars (issue 14): the sequence controller's cumulative true variance is never more than 2 %
 above greedy's, and at least 20 % below it on the rigs where greedy forces a large move.
+Printed beside them, not a bar: the rigs where greedy's *cumulative* true variance exceeds the
+sequence oracle's by more than 10 %, with the sequence controller's and the oracle's ratio to
+greedy there. (A controller's commands reach the target in truth only up to its model's mean
+error, so its true variance can be slightly below the oracle's, which meets the target exactly.)
 
 Part 2, solve time: for the residual models of ``--sizes`` (125, 500) covering moves on rig
 ``--seed``, ``--lists`` (20) random target lists of each horizon in ``--horizons`` (4, 16),
@@ -49,7 +53,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
@@ -79,6 +82,7 @@ from microctl.sequence import SequenceController  # noqa: E402
 from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model  # noqa: E402
 
 ABOVE_BAR, BELOW_BAR, TIME_BAR_MS = 1.02, 0.80, 100.0
+CUMULATIVE_GAP = 1.10
 REACH_REL = 1e-4
 
 
@@ -136,6 +140,7 @@ def run_rig(seed: int, moves: int, large: float) -> dict:
         out["oracle_seq"] = {"var": [r.objective for r in o], "q": [r.q.round(3).tolist() for r in o]}
     g, sq, o = (np.array(out[k]["var"]) for k in ("greedy", "sequence", "oracle_seq"))
     out["forces_large_move"] = bool(np.any(g > large * o))
+    out["worst_step_ratio"] = float(np.max(g / o))
     out["cum"] = {"greedy": float(g.sum()), "sequence": float(sq.sum()), "oracle_seq": float(o.sum())}
     return out
 
@@ -145,7 +150,13 @@ def summarise_rigs(results: list[dict], large: float) -> dict:
     forcing = np.array([r["forces_large_move"] for r in results])
     oracle_ratio = np.array([r["cum"]["greedy"] / r["cum"]["oracle_seq"] for r in results])
     seq_oracle = np.array([r["cum"]["sequence"] / r["cum"]["oracle_seq"] for r in results])
+    # a second view, reported beside the bar's definition (not a bar): greedy's cumulative true
+    # variance more than CUMULATIVE_GAP above the sequence oracle's
+    gap = oracle_ratio > CUMULATIVE_GAP
     return {
+        "gap_rigs": [int(r["seed"]) for r, k in zip(results, gap) if k],
+        "gap_sequence_ratios": ratio[gap].tolist(),
+        "gap_oracle_ratios": (1.0 / oracle_ratio[gap]).tolist(),
         "rigs": len(results), "forcing": int(forcing.sum()),
         "ratio_median": float(np.median(ratio)), "ratio_min": float(ratio.min()), "ratio_max": float(ratio.max()),
         "above_bar_pass": bool(np.all(ratio <= ABOVE_BAR)), "n_above": int(np.sum(ratio > ABOVE_BAR)),
@@ -163,12 +174,12 @@ def summarise_rigs(results: list[dict], large: float) -> dict:
 def print_rigs(results: list[dict], summ: dict, verbose: bool) -> None:
     print(f"\n{summ['rigs']} rigs; cumulative TRUE variance (µm², sum over the 4 executed moves)")
     print(f"{'rig':>4} {'greedy':>9} {'sequence':>9} {'oracle_seq':>10} {'seq/greedy':>10} {'greedy/orc':>10} "
-          f"{'forces':>6}  friction")
+          f"{'worst step g/o':>14} {'forces':>6}  friction (std per µm)")
     for r in results:
         c = r["cum"]
         print(f"{r['seed']:>4} {c['greedy']:>9.5f} {c['sequence']:>9.5f} {c['oracle_seq']:>10.5f} "
               f"{c['sequence'] / c['greedy']:>10.4f} {c['greedy'] / c['oracle_seq']:>10.3f} "
-              f"{'yes' if r['forces_large_move'] else '':>6}  "
+              f"{r['worst_step_ratio']:>14.2f} {'yes' if r['forces_large_move'] else '':>6}  "
               + ", ".join(f"{k} {v:.3f}" for k, v in r["friction"].items()))
         if verbose:
             for k in ("greedy", "sequence", "oracle_seq"):
@@ -186,6 +197,10 @@ def print_rigs(results: list[dict], summ: dict, verbose: bool) -> None:
     below = s["below_bar_pass"]
     print(f"bar: sequence <= {BELOW_BAR:g} x greedy on the forcing rigs: "
           f"{'no forcing rig (vacuous)' if below is None else ('PASS' if below else 'FAIL')}")
+    print(f"not a bar, a second view: rigs where greedy's CUMULATIVE true variance exceeds the sequence oracle's by "
+          f"> {100 * (CUMULATIVE_GAP - 1):.0f} %: {len(s['gap_rigs'])} ({s['gap_rigs']}); sequence/greedy on them "
+          f"{np.round(s['gap_sequence_ratios'], 4).tolist()}, sequence oracle/greedy "
+          f"{np.round(s['gap_oracle_ratios'], 4).tolist()}")
     print(f"median re-plan time along the trials: {s['plan_ms_median']:.1f} ms")
 
 
@@ -223,7 +238,7 @@ class MultiStageScipy:
         ws = afm.workspace
         r = minimize(f, U0.ravel(), jac=True, method="SLSQP", constraints=cons,
                      bounds=list(zip(np.tile(ws.u_lo, T), np.tile(ws.u_hi, T))),
-                     options={"maxiter": 500, "ftol": 1e-12})
+                     options={"maxiter": 200, "ftol": 1e-12})
         return r.x.reshape(T, afm.n_p), bool(r.success), int(getattr(r, "nit", 0))
 
 
