@@ -49,8 +49,8 @@ from microctl.objectives import R_E_SETTINGS, NoiseVariance, Objective, Smallest
 SEQUENCE_OBJECTIVES = ("sum", "max")
 
 __all__ = [
-    "R_E_SETTINGS", "SEQUENCE_OBJECTIVES", "ControllerSettings", "ControlResult", "Controller", "EAFMController", "OptimalController",
-    "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
+    "R_E_SETTINGS", "SEQUENCE_OBJECTIVES", "ControllerSettings", "ControlResult", "Controller", "EAFMController",
+    "OptimalController", "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
 ]
 
 

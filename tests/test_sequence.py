@@ -388,6 +388,26 @@ def test_pairwise_noise_equals_row_by_row(afm, curved):
     assert np.ptp(var) > 1e-6
 
 
+def test_pairwise_noise_seeding_proxy(afm, monkeypatch):
+    """Above CHEAP_SEEDING_WORK the seeding proxy: as r_np's (g's O(n^2) GP variance left out),
+    and f's variance (epistemic) from the mean state of S for every row."""
+    import microctl.objectives as objectives_mod
+
+    monkeypatch.setattr(objectives_mod, "CHEAP_SEEDING_WORK", 0.0)
+    eafm = EAFM(afm, wells_model(afm, n=40))
+    rng = np.random.default_rng(4)
+    S = np.column_stack([rng.uniform(0, 30, 5), rng.uniform(0, 32, (5, afm.n_q))])
+    U = afm.workspace.sample(6, rng)
+    obj = NoiseVariance()
+    np.testing.assert_allclose(obj.r_pairs(eafm, S, U, seeding=True),
+                               np.vstack([obj.r_np(eafm, s, U, seeding=True) for s in S]), rtol=1e-10)
+    assert not np.allclose(obj.r_pairs(eafm, S, U, seeding=True), obj.r_pairs(eafm, S, U), rtol=1e-3)
+    epi = NoiseVariance(r_e="noise_mean", epistemic=True)
+    g = np.vstack([NoiseVariance(r_e="noise_mean").r_np(eafm, s, U, seeding=True) for s in S])
+    np.testing.assert_allclose(epi.r_pairs(eafm, S, U, seeding=True),
+                               g + eafm.predict(S.mean(axis=0), U).f_var[None, :], rtol=1e-10)
+
+
 def test_oracle_sequence_avoids_the_forced_move():
     """The truth counterpart of test_greedy_is_forced_into_a_large_move: a simulated Table I stage
     (unit gains) with stick-slip 0.1 µm per µm on q1 and q4 only. The rigid-AFM derivation
