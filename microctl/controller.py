@@ -45,9 +45,12 @@ from microctl.errors import ConfigError, SolveError, UnreachableTargetError
 from microctl.fields import same_setting, setting, validate_settings
 from microctl.objectives import R_E_SETTINGS, NoiseVariance, Objective, SmallestMotion
 
+#: What sequence control minimises over the moves' r_e (``ControllerSettings.sequence_objective``).
+SEQUENCE_OBJECTIVES = ("sum", "max")
+
 __all__ = [
-    "R_E_SETTINGS", "ControllerSettings", "ControlResult", "Controller", "EAFMController", "OptimalController",
-    "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
+    "R_E_SETTINGS", "SEQUENCE_OBJECTIVES", "ControllerSettings", "ControlResult", "Controller", "EAFMController",
+    "OptimalController", "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
 ]
 
 
@@ -87,6 +90,9 @@ class ControllerSettings:
         IPOPT ``tol``.
     max_iter : int
         IPOPT ``max_iter`` per start.
+    sequence_objective : str
+        What sequence control (:mod:`microctl.sequence`) minimises over a target list:
+        ``"sum"`` (default) the cumulative r_e of the moves, ``"max"`` the worst move's.
     """
 
     r_e: str = same_setting(NoiseVariance, "r_e")
@@ -101,6 +107,7 @@ class ControllerSettings:
     range_tol: float = setting(1e-9, lo=0.0, hi=1e-3)                     # µm: round-off only
     ipopt_tol: float = setting(1e-8, lo=0.0, hi=1e-2, lo_open=True)
     max_iter: int = setting(200, lo=1, hi=100_000)
+    sequence_objective: str = setting("sum", choices=SEQUENCE_OBJECTIVES)
 
     def __post_init__(self) -> None:
         validate_settings(self, "controller setting")
@@ -485,23 +492,39 @@ class EAFMController(_BaseController):
         t, _ = self.eafm.mean_and_grad_u(s, U)
         return U, np.abs(t - target)
 
-    def _seeds(self, s: np.ndarray, target: float, grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Feasible seeds on the redundant set, their objective and the grid-local-minimum order."""
+    def _on_surface(self, s: np.ndarray, target: float, grid: int) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+        """The seeding grid of the redundant set moved onto the EAFM-mean surface from state s.
+
+        Returns
+        -------
+        U : ndarray, shape (grid**(n_p-1), n_p)
+            Grid points (those near the workspace Newton-projected onto t_mean(s, u) = target).
+        feasible : ndarray of int
+            Indices of the points on the surface (|residual| <= 1e-6 max(1, |target|)) and in range.
+        shape : tuple of int
+            The grid's shape.
+        """
         U, shape = self.rset.grid(target, grid)
         # drop points far outside the workspace before the GP work (Newton moves along w only slightly)
         q = U @ self.afm.K.T
         span = self.afm.hi - self.afm.lo
         near = np.all((q >= self.afm.lo - 0.05 * span) & (q <= self.afm.hi + 0.05 * span), axis=1)
-        obj = np.full(U.shape[0], np.inf)
         Un = U.copy()
+        idx = np.zeros(0, dtype=int)
         if np.any(near):
             Un[near], res = self._newton(s, U[near], target)
             qn = Un[near] @ self.afm.K.T
             feas = (res <= 1e-6 * max(1.0, abs(target))) & np.all(
                 (qn >= self.afm.lo) & (qn <= self.afm.hi), axis=1)
             idx = np.flatnonzero(near)[feas]
-            if idx.size:
-                obj[idx] = self._objective_np(s, Un[idx], seeding=True)
+        return Un, idx, shape
+
+    def _seeds(self, s: np.ndarray, target: float, grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Feasible seeds on the redundant set, their objective and the grid-local-minimum order."""
+        Un, idx, shape = self._on_surface(s, target, grid)
+        obj = np.full(Un.shape[0], np.inf)
+        if idx.size:
+            obj[idx] = self._objective_np(s, Un[idx], seeding=True)
         mins = _grid_local_minima(obj, shape)
         mins = mins[np.argsort(obj[mins])]
         return Un, obj, mins

@@ -104,11 +104,15 @@ class NoiseVariance:
             return g_mean + 0.5 * g_var
         return g_mean + self.kappa * sqrt(g_var + 1e-12)
 
-    def mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
+    def r_mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
+        """r_e (µm²) as a CasADi expression (the summed quantity of sequence control)."""
         r = ca.exp(self.log_r(e["g_mean"], e.get("g_var"), ca.sqrt))
         if self.epistemic:
             r = r + e["f_var"]
-        return -ca.expm1(-r)  # eq. 4: 1 - exp(-r_e)
+        return r
+
+    def mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
+        return -ca.expm1(-self.r_mx(s, u, e, K))  # eq. 4: 1 - exp(-r_e)
 
     def r_np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         """r_e (µm²) at the rows of U, shape (m,)."""
@@ -119,6 +123,31 @@ class NoiseVariance:
         r = np.exp(self.log_r(mean, var, np.sqrt))
         if self.epistemic:
             r = r + eafm.predict(s, U).f_var
+        return r
+
+    def r_pairs(self, eafm: EAFM, S: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+        """r_e (µm²) of a move to each pose U[j] from each state S[i], shape (m1, m2).
+
+        Row i equals ``r_np(eafm, S[i], U)`` (:meth:`EAFM.g_np_pairs`). With ``seeding`` and
+        more than :data:`CHEAP_SEEDING_WORK` of work (m1 m2 n^2), the proxy of :meth:`r_np`:
+        g's GP variance term left out (its parameter variance kept), and f's variance
+        (``epistemic``) taken from the mean state of S for every row.
+
+        Parameters
+        ----------
+        eafm : EAFM
+        S : ndarray, shape (m1, n_s)
+        U : ndarray, shape (m2, n_p)
+        """
+        S, U = np.atleast_2d(S), np.atleast_2d(U)
+        cheap = seeding and S.shape[0] * U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
+        mean, var = eafm.g_np_pairs(S, U, with_gp_var=not cheap and self.r_e != "noise_median")
+        r = np.exp(self.log_r(mean, var, np.sqrt))
+        if self.epistemic:
+            if cheap:
+                r = r + eafm.predict(S.mean(axis=0), U).f_var[None, :]
+            else:
+                r = r + np.vstack([eafm.predict(s, U).f_var for s in S])
         return r
 
     def evaluate(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:

@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import replace
 
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.commands._common import print_json
 from microctl.config import load_stage_config
-from microctl.controller import R_E_SETTINGS, AFMController, ControllerSettings, OptimalController
+from microctl.controller import (R_E_SETTINGS, SEQUENCE_OBJECTIVES, AFMController, ControllerSettings,
+                                 OptimalController, compare_noise)
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError
 from microctl.measurement_log import T_PLAUSIBLE_FACTOR, plausible_t_bound_um
@@ -28,7 +30,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
     p.add_argument("--model", required=True, metavar="MODEL.npz", help="residual model from `microctl train`")
-    p.add_argument("--target", required=True, type=float, metavar="T_UM", help="target tool pose (µm)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--target", type=float, metavar="T_UM", help="target tool pose (µm)")
+    which.add_argument("--targets", metavar="T1,T2,..",
+                       help="a list of targets (µm) reached in sequence: the sequence-optimal commands (one NLP over "
+                       "the whole list, minimising the cumulative r_e; docs/controller.md, Sequence control)")
     p.add_argument("--state", default=None, metavar="t,q1,..",
                    help="state s = [t; q] before the move, comma-separated µm (default: zero state)")
     d = ControllerSettings()
@@ -37,6 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "variance, cautious where the noise model is uncertain; see docs/controller.md)")
     p.add_argument("--kappa", type=float, default=d.kappa,
                    help=f"standard normal quantile of noise_quantile (default {d.kappa:g}: 95 %%)")
+    p.add_argument("--sequence-objective", default=d.sequence_objective, choices=SEQUENCE_OBJECTIVES,
+                   help=f"with --targets: minimise the sum of the moves' r_e or the worst move's "
+                   f"(default {d.sequence_objective})")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     p.set_defaults(func=_run)
 
@@ -95,6 +104,21 @@ def check_residual_model(path: str, afm: AnalyticForwardModel) -> None:
                               "on this stage's residuals, retrain it with `microctl train`")
 
 
+def parse_targets(text: str) -> list[float]:
+    """Parse ``--targets`` (``t1,t2,..`` µm) into a list; ConfigError naming the bad value."""
+    parts = [p.strip() for p in text.split(",")]
+    out = []
+    for k, p in enumerate(parts):
+        try:
+            v = float(p)
+        except ValueError:
+            raise ConfigError(f"--targets {text!r}: target {k + 1} = {p!r} is not a number") from None
+        if not math.isfinite(v):
+            raise ConfigError(f"--targets {text!r}: target {k + 1} = {p!r} is not finite")
+        out.append(v)
+    return out
+
+
 def _run(args: argparse.Namespace) -> int:
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
@@ -102,17 +126,30 @@ def _run(args: argparse.Namespace) -> int:
     if note:
         print(f"solve: note: {note}", file=sys.stderr)
     state = parse_state(args.state, afm)
-    if not math.isfinite(args.target):
+    targets = parse_targets(args.targets) if args.targets is not None else None
+    if targets is None and not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
     check_residual_model(args.model, afm)
     eafm = EAFM(afm, args.model)
-    settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa)
+    settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa, sequence_objective=args.sequence_objective)
     base_ctrl = AFMController(afm, settings, reporter=eafm)
+    if targets is not None:
+        return _run_sequence(args, afm, eafm, settings, base_ctrl, targets, state)
     res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
     base = base_ctrl.solve(args.target, state)
+    if args.json:
+        print_json(_step_dict(afm, eafm, settings, res, base))
+        return 0
+    _print_single(afm, settings, eafm, res, base, state)
+    return 0
+
+
+def _step_dict(afm: AnalyticForwardModel, eafm: EAFM, settings: ControllerSettings, res, base) -> dict:
+    """The JSON of one move: the EAFM command (eq. 4 or a sequence step) beside the AFM baseline."""
     cmp = res.vs_baseline
     dof = afm.dof
-    out = {
+    state = res.state
+    return {
         "target_um": res.target_um,
         "state": {n: float(v) for n, v in zip(afm.state_names, state)},
         "u": {n: float(v) for n, v in zip(dof, res.u)},
@@ -141,9 +178,12 @@ def _run(args: argparse.Namespace) -> int:
         },
         "model": {"noise_model": eafm.model.noise_model},
     }
-    if args.json:
-        print_json(out)
-        return 0
+
+
+def _print_single(afm: AnalyticForwardModel, settings: ControllerSettings, eafm: EAFM, res, base,
+                  state: np.ndarray) -> None:
+    cmp = res.vs_baseline
+    dof = afm.dof
     units = {"z": "µm"}
     where = ", ".join(f"{n} = {v:g}" for n, v in zip(afm.state_names, state))
     print(f"target {res.target_um:g} µm from the state {where} (µm; the tool pose and actuator positions "
@@ -164,4 +204,56 @@ def _run(args: argparse.Namespace) -> int:
           f"{res.noise_upper_std_um:.4f} µm); {verdict} (P = {cmp.prob_quieter:.3f}, level {cmp.level:g})")
     print(f"IPOPT: {res.status}, {res.iterations} iterations, {res.n_starts} start(s), "
           f"{res.solve_time_s * 1e3:.1f} ms; r_e = {settings.r_e}; noise model {eafm.model.noise_model}")
+
+
+def _run_sequence(args: argparse.Namespace, afm: AnalyticForwardModel, eafm: EAFM, settings: ControllerSettings,
+                  base_ctrl: AFMController, targets: list[float], state: np.ndarray) -> int:
+    """``--targets``: the sequence-optimal plan, each step beside the AFM baseline from the same state."""
+    from microctl.sequence import SequenceController
+
+    plan = SequenceController(eafm, settings).plan(targets, state)
+    steps = []
+    for res in plan.steps:
+        base = base_ctrl.solve(res.target_um, res.state)
+        cmp = compare_noise(eafm, res.state, res.u, base.u, settings.credible_level)
+        steps.append((replace(res, vs_baseline=cmp, baseline_u=base.u.copy()), base))
+    out = {
+        "targets_um": list(plan.targets_um),
+        "state": {n: float(v) for n, v in zip(afm.state_names, state)},
+        "sequence_objective": plan.sequence_objective,
+        "r_e": settings.r_e,
+        "kappa": settings.kappa,
+        "r_e_um2": [float(v) for v in plan.r_e_um2],
+        "total_r_e_um2": plan.total_r_e_um2,
+        "worst_r_e_um2": plan.worst_r_e_um2,
+        "status": plan.status,
+        "success": plan.success,
+        "iterations": plan.iterations,
+        "n_starts": plan.n_starts,
+        "solve_time_s": plan.solve_time_s,
+        "model": {"noise_model": eafm.model.noise_model},
+        "steps": [_step_dict(afm, eafm, settings, r, b) for r, b in steps],
+    }
+    if args.json:
+        print_json(out)
+        return 0
+    where = ", ".join(f"{n} = {v:g}" for n, v in zip(afm.state_names, state))
+    what = "sum of the moves' r_e" if plan.sequence_objective == "sum" else "worst move's r_e"
+    print(f"targets {', '.join(f'{t:g}' for t in targets)} µm in sequence from the state {where} (µm); "
+          f"minimised: the {what} (r_e = {settings.r_e})")
+    head = (f"{'step':>4} {'target':>8} " + " ".join(f"{'u_' + n:>9}" for n in afm.dof) + " "
+            + " ".join(f"{n:>7}" for n in afm.actuator_names)
+            + f" {'pred (µm)':>10} {'pred std':>9} {'noise std':>9} {'r_e (µm²)':>10} {'AFM std':>8}  quieter?")
+    print(head)
+    for k, ((res, base), r) in enumerate(zip(steps, plan.r_e_um2)):
+        print(f"{k + 1:>4} {res.target_um:>8g} " + " ".join(f"{v:>9.5f}" for v in res.u) + " "
+              + " ".join(f"{v:>7.3f}" for v in res.q)
+              + f" {res.predicted_um:>10.5f} {res.predicted_std_um:>9.5f} {res.noise_std_um:>9.5f} {r:>10.3g} "
+              f"{base.predicted_std_um:>8.5f}  {'credibly' if res.vs_baseline.credible else 'NOT credibly'} "
+              f"(P = {res.vs_baseline.prob_quieter:.3f})")
+    print("(pred = the EAFM's predicted pose; AFM std = the EAFM's predicted std at the AFM baseline's command "
+          "from the same state; quieter? = credibly quieter than that command)")
+    print(f"cumulative r_e {plan.total_r_e_um2:.4g} µm², worst move {plan.worst_r_e_um2:.4g} µm²; IPOPT: "
+          f"{plan.status}, {plan.iterations} iterations, {plan.n_starts} start(s), {plan.solve_time_s * 1e3:.1f} ms; "
+          f"noise model {eafm.model.noise_model}")
     return 0

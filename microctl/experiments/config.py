@@ -22,8 +22,16 @@ from microctl.errors import ConfigError
 from microctl.fields import FieldReader, read_settings, same_setting, setting, validate_settings
 from microctl.training import ResidualModelSettings
 
-#: Controllers an experiment can compare.
-CONTROLLERS = ("afm", "eafm", "oracle")
+#: Controllers an experiment can compare: the paper's AFM and EAFM (eq. 4), the oracle (eq. 4 on
+#: the simulator's truth), and sequence control over the whole target list with the EAFM
+#: (:mod:`microctl.sequence`) and on the truth (:class:`~microctl.experiments.oracle.OracleSequenceController`).
+CONTROLLERS = ("afm", "eafm", "oracle", "eafm_sequence", "oracle_sequence")
+
+#: Controllers of an experiment file that does not list them.
+DEFAULT_CONTROLLERS = ("afm", "eafm", "oracle")
+
+#: Controllers that need the simulator's truth.
+TRUTH_CONTROLLERS = ("oracle", "oracle_sequence")
 
 #: How refinement rounds choose their moves (see :class:`Training`).
 REFINE_STRATEGIES = ("uncertainty", "on_policy")
@@ -189,7 +197,8 @@ class ExperimentConfig:
         Serve the stage in-process (:class:`~microctl.emulator.Emulator`) and drive it through
         the serial backend (needs ``backend.serial`` in the stage config).
     controllers : tuple of str
-        Controllers compared, a subset of :data:`CONTROLLERS` (``afm`` and ``eafm`` required).
+        Controllers compared, a subset of :data:`CONTROLLERS` (``afm`` and ``eafm`` required;
+        default :data:`DEFAULT_CONTROLLERS`).
     seeds : Seeds
     training : Training
     controller : ControllerSettings
@@ -208,7 +217,7 @@ class ExperimentConfig:
     stage_path: Path
     stage_config: StageConfig
     emulate: bool = False
-    controllers: tuple[str, ...] = CONTROLLERS
+    controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
     seeds: Seeds = field(default_factory=Seeds)
     training: Training = field(default_factory=Training)
     controller: ControllerSettings = field(default_factory=ControllerSettings)
@@ -304,7 +313,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     stage_config = load_stage_config(stage_path)
     emulate = ck.boolean(top.get("emulate", False), "emulate")
 
-    ctrl_raw = top.get("controllers", list(CONTROLLERS))
+    ctrl_raw = top.get("controllers", list(DEFAULT_CONTROLLERS))
     if not isinstance(ctrl_raw, list) or not ctrl_raw:
         raise ck.fail("controllers", f"expected a list of controllers from {', '.join(CONTROLLERS)}, got {ctrl_raw!r}")
     controllers = tuple(ck.choice(c, f"controllers[{i}]", CONTROLLERS) for i, c in enumerate(ctrl_raw))
@@ -318,9 +327,10 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
         raise ck.fail("emulate", f"needs a stage config with backend.serial (the devices to emulate); "
                                  f"{stage_path} has none")
     simulated = backend.kind == "simulated" or emulate
-    if "oracle" in controllers and not simulated:
-        raise ck.fail("controllers", "'oracle' needs the simulator's true mean and variance: use a simulated "
-                                     "stage (backend.kind: simulated) or emulate: true")
+    for name in TRUTH_CONTROLLERS:
+        if name in controllers and not simulated:
+            raise ck.fail("controllers", f"'{name}' needs the simulator's true mean and variance: use a simulated "
+                                         "stage (backend.kind: simulated) or emulate: true")
 
     seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
 

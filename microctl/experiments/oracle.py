@@ -208,3 +208,182 @@ class OracleController:
             solve_time_s=time.perf_counter() - t0, success=True, constraint_residual=abs(mean - target),
             n_starts=int(U.shape[0]),
         )
+
+
+class OracleSequenceController:
+    """Sequence-optimal control against the simulator's truth: the counterpart of
+    :class:`~microctl.sequence.SequenceController` with the learned mean and noise replaced by
+    ``true_mean`` / ``true_var`` (the best any learned model can do over a target list).
+
+    Solves ``min sum_k true_var(s_{k-1}, u_k)`` (or the worst move's) subject to
+    ``true_mean(s_{k-1}, u_k) = t_k`` and the ranges, ``s_k = [t_k; K u_k]``, by dynamic
+    programming over candidate sets of each step's redundant set; the transition cost from
+    candidate i of step k-1 to candidate j of step k is ``true_var([t_{k-1}; K u_i], u_j)``.
+    Each step's candidates, every one moved onto the true-mean surface by Newton steps
+    (:class:`OracleController`'s rules): the grid of the redundant set; the lines where one
+    actuator stands still relative to the nominal previous pose, and where one sits at either
+    end of its range (the variance's optimum lies on such lines when an actuator with friction
+    stays put or one runs out of range); and the pose the greedy oracle (eq. 4 on the truth,
+    move by move) chooses, so the plan is never worse than the greedy oracle's. The path is then
+    refined ``zooms`` times: a 9 x 9 grid around each step's pose at half the spacing each time,
+    plus the still lines relative to the path's previous pose, and DP again.
+
+    The truth depends on the previous state only through q (``SimulatedStage.true_mean``), so a
+    plan stays valid whatever the gauge read after each move: the runner plans once per trial.
+    Later moves are evaluated at the stage's current clock and, for an actuator that stands
+    still, its current backlash direction: exact without drift and backlash (the shipped
+    simulated configs and the bench rigs).
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    stage : SimulatedStage
+        Rebind with :meth:`bind` when the experiment opens a fresh stage.
+    grid, line_points, zooms, newton_steps : int
+        As :class:`OracleController`.
+    sequence_objective : str
+        ``"sum"`` (cumulative true variance) or ``"max"`` (the worst move's; ties broken by
+        the cumulative one with weight 1e-3 per move).
+    """
+
+    name = "oracle_sequence"
+
+    def __init__(self, afm: AnalyticForwardModel, stage, *, grid: int = 31, line_points: int = 61, zooms: int = 2,
+                 newton_steps: int = 6, sequence_objective: str = "sum"):
+        self.afm = afm
+        self.one = OracleController(afm, stage, grid=grid, line_points=line_points, zooms=zooms,
+                                    newton_steps=newton_steps)
+        self.mode = sequence_objective
+
+    @property
+    def stage(self):
+        return self.one.stage
+
+    def bind(self, stage) -> None:
+        """Optimise against another simulated stage from now on."""
+        self.one.bind(stage)
+
+    def _candidates(self, s: np.ndarray, target: float, U: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """The rows of U moved (along the rows of D) onto true_mean(s, .) = target and in range."""
+        if U.shape[0] == 0:
+            return U
+        U, res = self.one._project(s, U, D, target)
+        ok = (res <= _CONSTRAINT_TOL * max(1.0, abs(target))) & self.one._in_range(U)
+        return U[ok]
+
+    def _lines(self, s_prev: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+        """Still lines relative to s_prev and the range-end lines, with their Newton directions."""
+        Us, Ds = [], []
+        for q in (s_prev[1:], self.afm.lo, self.afm.hi):
+            U, D = self.one._still_lines(np.concatenate([[s_prev[0]], q]), target, self.one.line_points, None)
+            Us.append(U)
+            Ds.append(D)
+        return np.vstack(Us), np.vstack(Ds)
+
+    def _dp(self, s0: np.ndarray, targets: np.ndarray, sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Best path over the candidate sets (T arrays of poses) and its per-move true variance."""
+        K = self.afm.K
+        T = len(targets)
+        prev = s0[None, :]
+        Vm, Vs = np.zeros(1), np.zeros(1)
+        back = []
+        for k in range(T):
+            C = np.vstack([self.one._var(p, sets[k]) for p in prev])  # (m_{k-1}, m_k) true variances
+            Ssum = Vs[:, None] + C
+            M = np.maximum(Vm[:, None], C)
+            score = Ssum if self.mode == "sum" else M + 1e-3 * Ssum / T
+            b = np.argmin(score, axis=0)
+            cols = np.arange(C.shape[1])
+            Vm, Vs = M[b, cols], Ssum[b, cols]
+            back.append(b)
+            prev = np.column_stack([np.full(sets[k].shape[0], targets[k]), sets[k] @ K.T])
+        final = Vs if self.mode == "sum" else Vm + 1e-3 * Vs / T
+        j = int(np.argmin(final))
+        path = np.empty((T, self.afm.n_p))
+        for k in range(T - 1, -1, -1):
+            path[k] = sets[k][j]
+            j = int(back[k][j])
+        S = self._states(s0, targets, path)
+        var = np.array([float(self.one._var(S[k], path[k][None, :])[0]) for k in range(T)])
+        return path, var
+
+    def _states(self, s0: np.ndarray, targets: np.ndarray, path: np.ndarray) -> np.ndarray:
+        """s_0..s_{T-1} of a path, shape (T, n_s)."""
+        return np.vstack([s0] + [np.concatenate([[targets[k]], self.afm.K @ path[k]]) for k in range(len(targets) - 1)])
+
+    def plan(self, targets_um, state: np.ndarray | None = None) -> list[ControlResult]:
+        """The truly sequence-optimal commands for ``targets_um`` from ``state``.
+
+        Parameters
+        ----------
+        targets_um : sequence of float, length T
+        state : ndarray, shape (n_s,), optional
+            s_0 = [t; q] (default zero state).
+
+        Returns
+        -------
+        list of ControlResult
+            One per move; ``predicted_um`` / ``predicted_std_um`` are the true mean and std
+            from the planned previous state, ``objective`` the true variance.
+
+        Raises
+        ------
+        SolveError
+            A step whose target no candidate reaches inside the ranges (the message names it).
+        """
+        t0 = time.perf_counter()
+        targets = np.asarray(targets_um, dtype=float).reshape(-1)
+        s0 = self.afm.zero_state() if state is None else np.asarray(state, dtype=float).reshape(-1)
+        rs, K = self.one.rset, self.afm.K
+        T = len(targets)
+        sets = []
+        s_nom = s0
+        for k, t in enumerate(targets):
+            t = float(t)
+            try:
+                greedy = self.one.solve(t, s_nom).u  # the greedy oracle's move from the nominal state
+            except SolveError:
+                raise SolveError(f"oracle_sequence: step {k + 1} of {T}: no command reaches {t:g} µm inside the "
+                                 f"actuator ranges from state [{', '.join(f'{v:g}' for v in s_nom)}]") from None
+            G, _ = rs.grid(t, self.one.grid)
+            L, DL = self._lines(s_nom, t)
+            U = np.vstack([greedy[None, :], G, L])
+            D = np.vstack([np.repeat(rs.dir_u[None, :], 1 + G.shape[0], axis=0), DL])
+            Uk = self._candidates(s_nom, t, U, D)
+            sets.append(np.vstack([greedy[None, :], Uk]))
+            s_nom = np.concatenate([[t], K @ greedy])
+        path, var = self._dp(s0, targets, sets)
+        N = rs.N
+        spacing = np.max(np.abs(np.vstack([(S / rs.D) @ N for S in sets])), axis=0) / max(self.one.grid - 1, 1) * 2.0
+        for _ in range(self.one.zooms):
+            sets = []
+            for k, t in enumerate(targets):
+                t = float(t)
+                s_prev = s0 if k == 0 else np.concatenate([[targets[k - 1]], K @ path[k - 1]])
+                c0 = (path[k] / rs.D) @ N
+                axes = [np.linspace(c - 2 * h, c + 2 * h, 9) for c, h in zip(c0, spacing)]
+                C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, N.shape[1])
+                Uz = (C @ N.T) * rs.D + (path[k] / rs.D @ rs.v_hat) * rs.v_hat * rs.D
+                L, DL = self.one._still_lines(s_prev, t, self.one.line_points, None)
+                U = np.vstack([Uz, L])
+                D = np.vstack([np.repeat(rs.dir_u[None, :], Uz.shape[0], axis=0), DL])
+                sets.append(np.vstack([path[k][None, :], self._candidates(s_prev, t, U, D)]))
+            path, var = self._dp(s0, targets, sets)
+            spacing = spacing / 2.0
+        out = []
+        S = self._states(s0, targets, path)
+        dt = time.perf_counter() - t0
+        for k, t in enumerate(targets):
+            mean = float(self.one._mean(S[k], path[k][None, :])[0])
+            q = np.clip(K @ path[k], self.afm.lo, self.afm.hi)
+            out.append(ControlResult(
+                controller=self.name, target_um=float(t), state=S[k].copy(), u=path[k].copy(), q=q, predicted_um=mean,
+                predicted_std_um=math.sqrt(var[k]), objective=float(var[k]), status="oracle sequence DP",
+                iterations=0, solve_time_s=dt, success=True, constraint_residual=abs(mean - float(t)),
+                n_starts=0))
+        return out
+
+    def solve(self, target_um: float, state: np.ndarray | None = None, *,
+              u_init: np.ndarray | None = None) -> ControlResult:
+        """The plan of one target (``u_init`` is ignored)."""
+        return self.plan([target_um], state)[0]

@@ -36,7 +36,8 @@ from microctl.eafm import EAFM
 from microctl.errors import BackendError, SolveError
 from microctl.experiments.config import ExperimentConfig
 from microctl.design import training_moves
-from microctl.experiments.oracle import OracleController
+from microctl.experiments.oracle import OracleController, OracleSequenceController
+from microctl.sequence import SequenceController
 from microctl.measurement_log import MeasurementLogWriter, read_log
 from microctl.progress import Progress
 from microctl.training import noise_summary, residual_dataset, train_residual_model
@@ -294,6 +295,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
 
 def _controllers(run: _Run, eafm: EAFM) -> dict:
     cfg = run.cfg
+    o = cfg.oracle
     out: dict[str, Any] = {}
     for name in cfg.controllers:
         if name == "afm":
@@ -301,8 +303,13 @@ def _controllers(run: _Run, eafm: EAFM) -> dict:
         elif name == "eafm":
             # with the AFM baseline: each result says whether its pose is credibly quieter
             out[name] = OptimalController(eafm, cfg.controller, baseline=AFMController(run.afm, cfg.controller))
+        elif name == "eafm_sequence":
+            out[name] = SequenceController(eafm, cfg.controller)
+        elif name == "oracle_sequence":
+            out[name] = OracleSequenceController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
+                                                 newton_steps=o.newton_steps,
+                                                 sequence_objective=cfg.controller.sequence_objective)
         else:
-            o = cfg.oracle
             out[name] = OracleController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
                                          newton_steps=o.newton_steps)
     return out
@@ -330,13 +337,17 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
                     rec.new_stage()
                     truth = run.truth(b)
-                    if isinstance(ctrl, OracleController):
+                    if isinstance(ctrl, (OracleController, OracleSequenceController)):
                         ctrl.bind(truth)
                     rec.move(b, np.zeros(afm.n_p), trial=k, target_um=0.0, controller=name)  # the zero state
                     prev_u = None
+                    plan: Any = None
                     for j, target in enumerate(targets):
                         s = b.state
-                        sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"])
+                        if isinstance(ctrl, (SequenceController, OracleSequenceController)):
+                            sol, plan = _sequence_step(ctrl, targets[j:], s, plan, run, r, fallback=ctrls["afm"])
+                        else:
+                            sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"])
                         if truth is not None:
                             r["true_mean_um"][k, j] = float(truth.true_mean(s, sol.u))
                             r["true_std_um"][k, j] = math.sqrt(float(truth.true_var(s, sol.u)))
@@ -367,6 +378,44 @@ def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallb
     r["fallbacks"] += 1
     run.say(f"experiment: {ctrl.name} could not solve {target:g} µm ({err}); the AFM command was used")
     return fallback.solve(float(target), s)
+
+
+def _sequence_step(ctrl, rest: list[float], s: np.ndarray, plan: Any, run: _Run, r: dict, fallback
+                   ) -> tuple[ControlResult, Any]:
+    """The next move of a sequence controller over the remaining targets ``rest``, from the state s.
+
+    ``eafm_sequence`` plans the whole list at the first move and re-plans the remaining targets
+    after every executed move from the measured state, warm-started with the previous plan
+    without its executed move (receding horizon): the EAFM's mean and noise depend on the
+    measured t_prev (x = [s; u], eq. 3), so each executed command is then on the EAFM-mean
+    surface from the state it is executed from, as the move-by-move controllers' are.
+    ``oracle_sequence`` plans once and executes its plan: the truth depends on the previous
+    state only through q, which the commands fix, so a re-plan would return the same moves.
+    Returns the move and what the next call needs (the plan). A failed plan is retried cold,
+    then the AFM command is used for this move (counted as a fallback) and the next move plans
+    afresh.
+    """
+    if isinstance(ctrl, OracleSequenceController):
+        if not plan:
+            try:
+                plan = ctrl.plan(rest, s)
+            except SolveError as exc:
+                r["fallbacks"] += 1
+                run.say(f"experiment: {ctrl.name} could not plan {rest} µm ({exc}); the AFM command was used")
+                return fallback.solve(float(rest[0]), s), None
+            return plan[0], plan[1:]
+        return replace(plan[0], solve_time_s=0.0), plan[1:]  # planned at an earlier move
+    err: Exception | None = None
+    warm = [plan.u[1:]] if plan is not None and len(plan.steps) > 1 else []
+    for u_init in (*warm, None):
+        try:
+            new = ctrl.plan(rest, s, u_init=u_init)
+            return new.steps[0], new
+        except SolveError as exc:
+            err = exc
+    r["fallbacks"] += 1
+    run.say(f"experiment: {ctrl.name} could not plan {rest} µm ({err}); the AFM command was used")
+    return fallback.solve(float(rest[0]), s), None
 
 
 # --------------------------------------------------------------------------------------
