@@ -24,6 +24,7 @@ contact loss, drift) belong to the physics model (:mod:`microctl.physics`), not 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Sequence
 
 import casadi as ca
@@ -68,6 +69,11 @@ def contact_frame(normal: Sequence[float]) -> np.ndarray:
 
     The choice of o_i and a_i is arbitrary (the paper's words); H_i keeps only n_i.
     """
+    return _contact_frame(tuple(float(x) for x in normal)).copy()
+
+
+@lru_cache(maxsize=64)
+def _contact_frame(normal: tuple[float, ...]) -> np.ndarray:
     n = np.asarray(normal, dtype=float)
     helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     o = np.cross(n, helper)

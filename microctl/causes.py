@@ -42,6 +42,9 @@ __all__ = [
     "REGISTRY",
     "KINDS",
     "Param",
+    "Nuisance",
+    "PRELOAD_COMPRESSION",
+    "nuisances",
     "Cause",
     "register",
     "StageParts",
@@ -90,6 +93,55 @@ class Param:
     rule: str | None
     fit_lo: float
     fit_hi: float
+
+
+@dataclass(frozen=True)
+class Nuisance:
+    """A number of the stage physics that a cause's prediction depends on and that the config
+    may have wrong (fitted with the cause, reported, not a cause itself).
+
+    Attributes
+    ----------
+    name : str
+        Report name with unit (``preload_compression_um``).
+    unit : str
+    lo, hi : float
+        Search range.
+    factors : tuple of float
+        Starting values of a grid search, as multiples of the config's value.
+    """
+
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    factors: tuple[float, ...] = (1.0,)
+
+    def value(self, stage: "Stage") -> float:
+        """The config's value."""
+        raise NotImplementedError
+
+    def apply(self, stage: "Stage", value: float) -> "Stage":
+        """``stage`` with this number set to ``value``."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class _PreloadCompression(Nuisance):
+    """Preload compression c = preload / contact stiffness: how far a lowered ball can sit before
+    it unloads. A stage preloaded differently from its config has another c; its contact stiffness
+    and flexure are kept (c changes the preload)."""
+
+    def value(self, stage):
+        return preload_compression_um(stage)
+
+    def apply(self, stage, value):
+        ph = stage.physics
+        return replace(stage, physics=replace(ph, preload_n=float(value) * ph.contact_stiffness_n_per_um))
+
+
+#: The preload compression as a nuisance of ``contact_loss``.
+PRELOAD_COMPRESSION = _PreloadCompression("preload_compression_um", "µm", 0.5, 60.0, (0.5, 1.0, 2.0, 4.0))
 
 
 #: name -> cause class, in vocabulary order (filled by :func:`register`).
@@ -157,6 +209,11 @@ class Cause:
         The other fields, in order.
     meaning : str
         Physical meaning (the spec's table).
+    needs : tuple of str
+        Data a diagnosis needs to see the cause (``"time_s"`` for drift).
+    nuisance : tuple of Nuisance
+        Stage-physics numbers fitted with the cause (its prediction depends on them strongly
+        and the config may have them wrong).
     """
 
     name: ClassVar[str] = ""
@@ -164,6 +221,8 @@ class Cause:
     per_actuator: ClassVar[bool] = False
     params: ClassVar[tuple[Param, ...]] = ()
     meaning: ClassVar[str] = ""
+    needs: ClassVar[tuple[str, ...]] = ()
+    nuisance: ClassVar[tuple[Nuisance, ...]] = ()
 
     # ---- values ------------------------------------------------------------------------
     @classmethod
@@ -205,8 +264,9 @@ class Cause:
 
     @classmethod
     def start_grid(cls, stage: "Stage") -> tuple[tuple[float, ...], ...]:
-        """Starting points a fit tries when not warm-started (the best one is used)."""
-        return (cls.healthy(),)
+        """Starting points a fit tries when not warm-started (the best one is used): parameters
+        followed by the :attr:`nuisance` values."""
+        return (cls.healthy() + tuple(n.value(stage) for n in cls.nuisance),)
 
     # ---- planting ------------------------------------------------------------------------
     @classmethod
@@ -383,18 +443,22 @@ class ContactLoss(Cause):
     params: ClassVar[tuple[Param, ...]] = (Param("gap_um", "µm", 0.0, "nonneg", 0.0, np.inf),)
     meaning: ClassVar[str] = ("ball i sits gap_um low (lost preload): it carries no load until the platform "
                               "comes down onto it, and the platform rests on the other balls")
+    # where the ball unloads depends on the gap *relative to* the preload compression, which a
+    # stage preloaded differently from its config does not share: fitted with the gap
+    nuisance: ClassVar[tuple[Nuisance, ...]] = (PRELOAD_COMPRESSION,)
 
     def apply(self, parts: StageParts) -> None:
         parts.gap_um[self.actuator - 1] = self.gap_um
 
     @classmethod
     def fit_bounds(cls, stage):
-        return (0.0,), (preload_compression_um(stage) + GAP_SEARCH_UM,)
+        return (0.0,), (PRELOAD_COMPRESSION.hi + GAP_SEARCH_UM,)
 
     @classmethod
     def start_grid(cls, stage):
-        c = preload_compression_um(stage)
-        return tuple((max(0.0, c + g),) for g in GAP_GRID_OFFSETS_UM)
+        c0 = preload_compression_um(stage)
+        return tuple((max(0.0, c + g), c) for c in (f * c0 for f in PRELOAD_COMPRESSION.factors)
+                     for g in GAP_GRID_OFFSETS_UM)
 
     @classmethod
     def draw(cls, rng, actuator, *, compression_um):
@@ -440,6 +504,7 @@ class Drift(Cause):
     kind: ClassVar[str] = "dynamic"
     params: ClassVar[tuple[Param, ...]] = (Param("rate_um_per_s", "µm/s", 0.0, None, -1.0, 1.0),)
     meaning: ClassVar[str] = "the reading creeps linearly with time"
+    needs: ClassVar[tuple[str, ...]] = ("time_s",)
 
     def apply(self, parts: StageParts) -> None:
         parts.sensor = replace(parts.sensor, drift_um_per_s=self.rate_um_per_s)
@@ -547,6 +612,14 @@ Effects = make_dataclass(
         "of": classmethod(_effects_from_items),
     },
 )
+
+
+def nuisances() -> tuple[Nuisance, ...]:
+    """Every nuisance some registered cause declares (each once)."""
+    out: list[Nuisance] = []
+    for c in REGISTRY.values():
+        out += [n for n in c.nuisance if n not in out]
+    return tuple(out)
 
 
 def stage_parts(stage: "Stage", effects: Any | None = None, kinds: Sequence[str] = KINDS) -> StageParts:

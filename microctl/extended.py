@@ -25,12 +25,13 @@ shared/spec/diagnosis.md step 3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property, lru_cache
 
 import numpy as np
 
 from microctl.afm import inverse_kinematics_matrix
-from microctl.config import Effects, Stage
+from microctl.config import Effects, Physics, Stage
 from microctl.physics import (
     ZERO_STATE_DIRECTION,
     actual_positions,
@@ -47,7 +48,7 @@ from microctl.physics import (
 __all__ = ["ExtendedForwardModel", "ExtendedPrediction"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ExtendedPrediction:
     """Extended-model prediction at m moves.
 
@@ -57,16 +58,31 @@ class ExtendedPrediction:
         Expected reading, µm.
     q : ndarray, shape (m, n_q)
         Actuator commands q = K u, µm.
-    sensitivity : ndarray, shape (m, n_q)
-        d reading / d actual actuator displacement (to propagate actuator noise), µm/µm.
+    p : ndarray, shape (m, n_p)
+        Equilibrium platform poses.
     active : ndarray of bool, shape (m, n_q)
         Balls in contact.
+    model : ContactModel
+        The physics the prediction was made with.
     """
 
     t: np.ndarray
     q: np.ndarray
-    sensitivity: np.ndarray
+    p: np.ndarray
     active: np.ndarray
+    model: object
+
+    @cached_property
+    def sensitivity(self) -> np.ndarray:
+        """d reading / d actual actuator displacement (to propagate actuator noise), µm/µm, shape (m, n_q)."""
+        return tool_sensitivity(self.model, self.p, self.active)
+
+
+@lru_cache(maxsize=32)
+def _cad_inverse_kinematics(stage: Stage) -> np.ndarray:
+    K = inverse_kinematics_matrix(stage)
+    K.setflags(write=False)
+    return K
 
 
 class ExtendedForwardModel:
@@ -90,7 +106,8 @@ class ExtendedForwardModel:
     def __init__(self, stage: Stage, effects: Effects | None = None):
         self.stage = stage
         self.effects = stage.corrections if effects is None else effects
-        self.K = inverse_kinematics_matrix(stage)
+        # q = K u from the CAD geometry (what the drivers get), whatever the physics and corrections
+        self.K = _cad_inverse_kinematics(replace(stage, physics=Physics(), corrections=Effects()))
         self.model = contact_model(stage, self.effects)
 
     @property
@@ -161,7 +178,7 @@ class ExtendedForwardModel:
             d = directions_from_steps(q - np.atleast_2d(np.asarray(q_prev, dtype=float)), last_direction)
         p, active = self.pose(self.actual_positions(q, d))
         t = self.reading(p, time_s)
-        return ExtendedPrediction(t=t, q=q, sensitivity=tool_sensitivity(self.model, p, active), active=active)
+        return ExtendedPrediction(t=t, q=q, p=p, active=active, model=self.model)
 
     def predict(
         self,

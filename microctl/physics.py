@@ -278,12 +278,16 @@ def solve_equilibrium(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, n
         p_n, _ = _solve_active(model, Sp, hp)
         d = p_n - pp
         e0 = _energy(model, pp, hp)
-        trial = pp[:, None, :] + _ALPHAS[None, :, None] * d[:, None, :]
-        e = _energy(model, trial, hp[:, None, :])
-        etol = 1e-12 * (1.0 + np.abs(e0))[:, None]
-        ok = e <= e0[:, None] + etol
-        first = np.argmax(ok, axis=1)  # largest accepted step
-        alpha = np.where(ok.any(axis=1), _ALPHAS[first], 1.0)
+        etol = 1e-12 * (1.0 + np.abs(e0))
+        # the full step first (usually accepted); the halving ladder only where it is not
+        alpha = np.ones(len(pp))
+        bad = ~(_energy(model, p_n, hp) <= e0 + etol)
+        if bad.any():
+            trial = pp[bad, None, :] + _ALPHAS[None, 1:, None] * d[bad, None, :]
+            e = _energy(model, trial, hp[bad, None, :])
+            ok = e <= (e0 + etol)[bad, None]
+            first = np.argmax(ok, axis=1)  # largest accepted step
+            alpha[bad] = np.where(ok.any(axis=1), _ALPHAS[1:][first], 1.0)
         p[todo] = pp + alpha[:, None] * d
         active[todo] = Sp
         exact[todo] = alpha == 1.0

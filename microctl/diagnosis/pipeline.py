@@ -11,20 +11,19 @@ clean data is at most α per run.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.blas import single_thread_blas
-from microctl.config import StageConfig, with_corrections
+from microctl.config import StageConfig
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
 from microctl.diagnosis.residuals import Test, breusch_pagan, gp_lr_test, where_analysis
 from microctl.diagnosis.selection import Selection, select_mean_causes
-from microctl.extended import ExtendedForwardModel
 
 #: Overall significance level of a diagnosis (per run).
 ALPHA = 1e-3
@@ -64,9 +63,8 @@ class Diagnosis:
     extras: dict = field(default_factory=dict)
 
 
-def _sensitivity(config: StageConfig, effects, data: DiagnosisData) -> np.ndarray:
-    ext = ExtendedForwardModel(config.stage, effects)
-    return ext.predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+def _sensitivity(fit, data: DiagnosisData) -> np.ndarray:
+    return fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
 
 
 def run_diagnosis(
@@ -123,13 +121,13 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
     model_resid = data.t - sel.baseline.pred
     resid = data.t - sel.final.pred
-    noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
+    noise = select_noise(resid, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
     weights = None
     if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
         weights = 1.0 / np.sqrt(noise.fit.var)
         sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
         resid = data.t - sel.final.pred
-        noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
+        noise = select_noise(resid, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
     timing["name_s"] = time.perf_counter() - t_start
 
     # ---- 1. show: significance of the discrepancy ------------------------------------------
@@ -166,13 +164,16 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         })
 
     # ---- 3. extend -------------------------------------------------------------------------
-    ext_cfg = with_corrections(config, sel.final.effects)
+    # the accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
+    # compression of a contact loss): the extended model needs both to reproduce the fit
+    ext_cfg = replace(config, stage=replace(sel.final.stage, corrections=sel.final.effects))
 
     # ---- 4. gain -----------------------------------------------------------------------------
     g = None
     if gain:
         t0 = time.perf_counter()
-        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, holdout=holdout, friction=noise.fit.friction,
+        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, nuisance=sel.final.nuisance, holdout=holdout,
+                            friction=noise.fit.friction,
                             folds=folds, seed=seed, gp=gp, progress=progress)
         timing["gain_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start

@@ -142,7 +142,8 @@ def select_mean_causes(
     Selection
     """
     base: Effects = stage.corrections
-    specs = list(candidate_specs(stage, data.time_s is not None) if specs is None else specs)
+    has = ("time_s",) if data.time_s is not None else ()
+    specs = list(candidate_specs(stage, has) if specs is None else specs)
     baseline = fit_mean(stage, base, [], data, weights=weights)
     current = baseline
     accepted: list[CauseSpec] = []
@@ -162,7 +163,8 @@ def select_mean_causes(
         fits: dict[str, MeanFit] = {}
         for s in remaining:
             theta0 = np.concatenate([current.theta, s.start_from(base)])  # warm start
-            fits[s.key] = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, weights=weights)
+            fits[s.key] = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, nuisance0=current.nuisance,
+                                   weights=weights)
             if progress is not None:
                 progress(s.key)
         best_key = min(fits, key=lambda k: fits[k].bic)
