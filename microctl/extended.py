@@ -41,7 +41,7 @@ from microctl.physics import (
     directions_from_steps,
     reading_variance,
     sensor_reading,
-    solve_equilibrium,
+    solve_with_zero,
     tool_sensitivity,
 )
 
@@ -128,7 +128,7 @@ class ExtendedForwardModel:
 
     def pose(self, q_actual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Contact equilibrium for actual actuator positions (m, n_q): pose (m, n_p), balls in contact (m, n_q)."""
-        return solve_equilibrium(self.model, ball_heights(self.model, q_actual))
+        return solve_with_zero(self.model, ball_heights(self.model, q_actual))
 
     def reading(self, p: np.ndarray, time_s: np.ndarray | float | None = None) -> np.ndarray:
         """Noise-free gauge reading of poses p (m, n_p) at ``time_s``, shape (m,)."""

@@ -43,7 +43,7 @@ matches the rigid AFM to ≈ 0.01 µm. Every function accepts either a
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -98,7 +98,8 @@ class ContactModel:
     q_zero : ndarray, shape (n_c,)
         Actual actuator positions at the zero state (−lag: approached "up").
     p_zero : ndarray, shape (n_p,)
-        Noise-free equilibrium pose at the zero state (the gauge's zero).
+        Noise-free equilibrium pose at the zero state (the gauge's zero); solved on first use,
+        or together with a batch of moves by :func:`solve_with_zero`.
     """
 
     A: np.ndarray
@@ -113,7 +114,14 @@ class ContactModel:
     w_true: np.ndarray
     sensor: Sensor
     q_zero: np.ndarray
-    p_zero: np.ndarray
+
+    @cached_property
+    def p_zero(self) -> np.ndarray:
+        """Noise-free equilibrium pose at the zero state, shape (n_p,) (read-only)."""
+        p0, _ = solve_equilibrium(self, ball_heights(self, self.q_zero[None, :]))
+        p0 = p0[0]
+        p0.setflags(write=False)
+        return p0
 
     @property
     def n_p(self) -> int:
@@ -170,12 +178,9 @@ def _cached_model(stage: Stage, effects: Effects) -> ContactModel:
         w_true=tool_vector(stage, parts),  # eq. 13 with the moved tool point
         sensor=parts.sensor,
         q_zero=-parts.lag_um * ZERO_STATE_DIRECTION,  # backlash at the zero state, approached "up"
-        p_zero=np.zeros(n_p),
     )
-    p0, _ = solve_equilibrium(model, ball_heights(model, model.q_zero[None, :]))
-    object.__setattr__(model, "p_zero", p0[0])
     for arr in (model.A, model.nd, model.gain, model.gap_um, model.lag_um, model.friction_std_per_um,
-                model.k_h, model.f_preload, model.w_true, model.q_zero, model.p_zero):
+                model.k_h, model.f_preload, model.w_true, model.q_zero):
         arr.setflags(write=False)
     return model
 
@@ -295,6 +300,19 @@ def solve_equilibrium(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, n
         f"contact equilibrium did not converge in {MAX_NEWTON_ITERATIONS} Newton iterations "
         f"for {int((~done).sum())} of {m} moves"
     )
+
+
+def solve_with_zero(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`solve_equilibrium` for heights h (m, n_c), solving the zero state (``model.p_zero``)
+    in the same batch when it is not known yet (one Newton run instead of two)."""
+    if "p_zero" in model.__dict__:
+        return solve_equilibrium(model, h)
+    h = np.atleast_2d(np.asarray(h, dtype=float))
+    p, active = solve_equilibrium(model, np.vstack([ball_heights(model, model.q_zero[None, :]), h]))
+    p0 = p[0].copy()
+    p0.setflags(write=False)
+    model.__dict__["p_zero"] = p0  # the cached_property's slot
+    return p[1:], active[1:]
 
 
 def equilibrium(

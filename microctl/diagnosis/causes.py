@@ -37,6 +37,10 @@ from microctl.extended import ExtendedForwardModel
 #: Mean causes in vocabulary order (report names), from the registry.
 MEAN_CAUSES = tuple(n for n, c in REGISTRY.items() if c.kind in MEAN_KINDS)
 
+#: Relative tolerances of the least-squares fits (parameters to ~1e-8 of their scale: far below
+#: any standard error).
+FIT_TOL = 1e-8
+
 #: Smallest singular value ratio of JᵀJ treated as full rank.
 RANK_TOL = 1e-10
 
@@ -368,8 +372,8 @@ def fit_mean(
                 best, best_rss = np.array(g, dtype=float), float(r @ r)
         x0[slots] = best
     x0 = np.clip(x0, lo, hi)
-    res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=1e-10, ftol=1e-10,
-                        gtol=1e-10, max_nfev=200 * len(x0))
+    res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=FIT_TOL, ftol=FIT_TOL,
+                        gtol=FIT_TOL, max_nfev=200 * len(x0))
     x = res.x
     r = res.fun
     rss = float(r @ r)

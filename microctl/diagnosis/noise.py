@@ -63,6 +63,19 @@ class NoiseFit:
         """Number of variance parameters."""
         return 1 + len(self.friction)
 
+    def variance(self, J: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The fitted variance model at other moves: σ₀² + Σ_{i∈F} (J_i s_i Δq_i)², µm², shape (m,).
+
+        Parameters
+        ----------
+        J : ndarray, shape (m, n_q)
+            Reading sensitivity to each actuator at those moves.
+        dq : ndarray, shape (m, n_q)
+            Their actuator steps, µm.
+        """
+        idx = [a - 1 for a in self.friction]
+        return self.std_um**2 + np.sum((J[:, idx] * self.std_per_um * dq[:, idx]) ** 2, axis=1)
+
     @property
     def bic(self) -> float:
         """−2ℓ + k log n."""

@@ -19,11 +19,14 @@ import numpy as np
 from microctl.afm import AnalyticForwardModel
 from microctl.blas import single_thread_blas
 from microctl.config import StageConfig
+from microctl.diagnosis.causes import fit_mean
 from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
-from microctl.diagnosis.residuals import Test, breusch_pagan, gp_lr_test, where_analysis
-from microctl.diagnosis.selection import Selection, select_mean_causes
+from microctl.diagnosis.outliers import RowTest, extreme_rows, screen, suspect_cells, test_rows
+from microctl.diagnosis.residuals import Test, breusch_pagan, gp_inputs, gp_lr_test, where_analysis
+from microctl.diagnosis.selection import Selection, backward, select_mean_causes, withdraw
 
 #: Overall significance level of a diagnosis (per run).
 ALPHA = 1e-3
@@ -65,6 +68,90 @@ class Diagnosis:
 
 def _sensitivity(fit, data: DiagnosisData) -> np.ndarray:
     return fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+
+
+#: Most rounds of "name causes on the rows kept, test every row" before the outlier set is taken as it is.
+MAX_OUTLIER_PASSES = 3
+
+
+@dataclass(frozen=True, eq=False)
+class Named:
+    """Question 2 on one set of rows: the causes, the noise model and what is left.
+
+    Attributes
+    ----------
+    sel : Selection
+        Mean causes (after the guard's withdrawals).
+    noise : NoiseSelection
+    weights : ndarray (n,) or None
+        1/std per row when friction was accepted (weighted least squares).
+    left : Leftover
+        Structure left after the causes (``unexplained`` when significant).
+    guard : GuardResult or None
+        The causes re-tested alongside the flexible term (run when structure is left).
+    """
+
+    sel: Selection
+    noise: NoiseSelection
+    weights: np.ndarray | None
+    left: Leftover
+    guard: GuardResult | None
+
+
+def _name(stage, data: DiagnosisData, a_each: float, seed: int, progress) -> Named:
+    """Mean causes, noise causes, leftover structure and the guard, on ``data``."""
+    sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
+    noise = select_noise(data.t - sel.final.pred, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    weights = None
+    if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
+        weights = 1.0 / np.sqrt(noise.fit.var)
+        sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
+        noise = select_noise(data.t - sel.final.pred, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    # every cause must still pay once the others are in the model (greedy forward steps can leave
+    # an early small one redundant)
+    drop = backward(sel, stage, data, weights=weights, alpha=a_each)
+    if drop:
+        sel = withdraw(sel, drop, stage, data, weights=weights,
+                       reason="does not pay once the other accepted causes are in the model")
+    w0 = np.ones(data.n) if weights is None else weights
+    left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    grd = None
+    if left.significant and sel.accepted:
+        # structure is left: a cause must still pay alongside the flexible term, or it is withdrawn
+        grd = guard(stage, data, sel.final, left, weights=weights, alpha=a_each)
+        if grd.withdrawn:
+            sel = withdraw(sel, grd.withdrawn, stage, data, weights=weights,
+                           reason="the flexible term (generic basis + GP) explains its contribution as well")
+            left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    if left.significant:
+        # the noise causes are fitted on what the mean model *and* the flexible term leave: structure
+        # is not scatter
+        r = data.t - sel.final.pred
+        r = r - Flexible.fit(data, np.ones(data.n, dtype=bool), r, left.gp if weights is None else None).values
+        noise = select_noise(r, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    return Named(sel, noise, weights, left, grd)
+
+
+def _test_rows(named: Named, data: DiagnosisData, keep: np.ndarray, a_each: float) -> tuple[RowTest, np.ndarray]:
+    """The outlier test on every row of ``data`` for a model named on the rows ``keep``.
+
+    Returns the test and the flexible term's values (zero when no structure is left)."""
+    fit = named.sel.final
+    pred = fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    r = data.t - (pred.t + fit.zero_um)
+    smooth, var_f = np.zeros(data.n), np.zeros(data.n)
+    if named.left.significant:
+        gp = named.left.gp if named.weights is None else None  # a weighted GP is in other units: basis only
+        flex = Flexible.fit(data, keep, r[keep], gp)
+        smooth, var_f = flex.values, flex.var
+    std = np.sqrt(named.noise.fit.variance(pred.sensitivity, data.dq) + var_f)
+    test = test_rows(r - smooth, std, keep, a_each)
+    if named.left.significant:
+        # the flexible term only approximates structure no cause names (it extrapolates poorly at
+        # the corners of the workspace): a row is an outlier only if it is also extreme against the
+        # spread of that structure (robust z of the residual itself)
+        test = replace(test, outlier=test.outlier & extreme_rows(r[keep], r, a_each))
+    return test, smooth
 
 
 def run_diagnosis(
@@ -115,19 +202,26 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     stage = config.stage
     a_each = alpha / N_DISCREPANCY_TESTS
     afm = AnalyticForwardModel(stage)
-    afm_resid = data.t - afm.t_of(data.u)
+    all_data = data
 
-    # ---- 2. name: mean causes (pass 1, unweighted) --------------------------------------------
-    sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
+    # ---- outliers: set aside by a robust screen, then name on the rest and test every row -------
+    configured = fit_mean(stage, stage.corrections, [], all_data)
+    out_mask = screen(all_data.t - configured.pred, all_data, a_each)
+    passes = []
+    for _ in range(MAX_OUTLIER_PASSES):
+        keep = ~out_mask
+        data = all_data.subset(np.flatnonzero(keep))
+        named = _name(stage, data, a_each, seed, progress)
+        rows, smooth = _test_rows(named, all_data, keep, a_each)
+        passes.append(int(out_mask.sum()))
+        converged = bool(np.array_equal(rows.outlier, out_mask))
+        if converged:
+            break
+        out_mask = rows.outlier
+    sel, noise, weights, left = named.sel, named.noise, named.weights, named.left
+    afm_resid = data.t - afm.t_of(data.u)
     model_resid = data.t - sel.baseline.pred
     resid = data.t - sel.final.pred
-    noise = select_noise(resid, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
-    weights = None
-    if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
-        weights = 1.0 / np.sqrt(noise.fit.var)
-        sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
-        resid = data.t - sel.final.pred
-        noise = select_noise(resid, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
     timing["name_s"] = time.perf_counter() - t_start
 
     # ---- 1. show: significance of the discrepancy ------------------------------------------
@@ -140,17 +234,14 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         # already conclusive: the GP test could only lower the minimum (saves a GP fit)
         gp0 = Test("GP likelihood ratio against white noise (not run: other tests conclusive)", float("nan"), 1.0)
     else:
-        gp0, _ = gp_lr_test(model_resid * w0, data.u, seed=seed)
+        gp0, _ = gp_lr_test(model_resid * w0, gp_inputs(data), seed=seed)
     tests0 = [f_test0, lr_best0, gp0, het0]
     p_disc = float(min(1.0, N_DISCREPANCY_TESTS * min(t.p_value for t in tests0)))
     significant = bool(p_disc < alpha or sel.accepted or noise.fit.friction)
 
-    # ---- unexplained structure left over -----------------------------------------------------
-    final_w = resid * w0
-    f_left = sel.steps[-1].structure
-    gp_left, gp_fit = gp_lr_test(final_w, data.u, seed=seed)
-    p_left = float(min(1.0, 2 * min(f_left.p_value, gp_left.p_value)))
-    unexplained = bool(significant and p_left < a_each)
+    # ---- unexplained structure left over ---------------------------------------------------------
+    p_left = left.p_value
+    unexplained = bool(significant and left.significant)
     timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
 
     mean_entries = list(sel.entries)
@@ -159,8 +250,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         accepted_mean.append("unexplained")
         mean_entries.insert(len(sel.accepted), {
             "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": 0.0, "p_value": p_left,
-            "equivalent": [], "accepted": True,
-            "tests": [f_left.to_dict(), gp_left.to_dict()],
+            "equivalent": [], "accepted": True, "tests": left.tests(),
         })
 
     # ---- 3. extend -------------------------------------------------------------------------
@@ -210,8 +300,22 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
                 for s in sel.steps
             ],
         },
-        "unexplained": {"significant": unexplained, "p_value": p_left,
-                        "tests": [f_left.to_dict(), gp_left.to_dict()]},
+        "unexplained": {"significant": unexplained, "p_value": p_left, "tests": left.tests(),
+                        "guard": None if named.guard is None else named.guard.to_dict()},
+        "outliers": {
+            "rows": [{**ids, **cell, "z": float(rows.z[ids["index"]])} for ids, cell in
+                     zip(all_data.row_ids(np.flatnonzero(out_mask)),
+                         suspect_cells(all_data, afm.K, out_mask, stage.actuator_names, stage.tool.name))],
+            "count": int(out_mask.sum()),
+            "test": ("residual of the named model (less the flexible term where structure is left), "
+                     "standardised by the noise model and the robust scale of the fitted rows; "
+                     "Bonferroni over rows"),
+            "critical_z": rows.critical,
+            "passes": len(passes),
+            "converged": converged,
+            "note": "left out of every fit and of the RMSEs and tests below; index is 0-based, line is the "
+                    "CSV line (header = line 1)",
+        },
         "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
         "nuisance": {
             "gauge_zero_um": float(sel.final.zero_um),
@@ -224,4 +328,5 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     }
     if g is not None:
         report["gain"] = g.to_dict()
-    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g)
+    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g,
+                     {"all_data": all_data, "outliers": out_mask, "named": named, "smooth": smooth})

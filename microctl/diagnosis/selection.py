@@ -21,7 +21,7 @@ every actuator (docs/diagnosis.md derives why and what measurement separates the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -104,6 +104,7 @@ class Selection:
     entries: list
     stop_reason: str
     specs: tuple = field(default=())
+    withdrawn: tuple = field(default=())
 
 
 def _lr_p(cur: MeanFit, new: MeanFit, n_tests: int) -> float:
@@ -216,4 +217,69 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
             out.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - best_bic),
                                    delta_bic_vs_previous=float(f.bic - first.current.bic),
                                    rank_deficient=bool(f.rank_deficient), equivalent=[], accepted=False))
+    return out
+
+
+def withdraw(sel: Selection, keys: Sequence[str], stage: Stage, data: DiagnosisData, *,
+             weights: np.ndarray | None = None, reason: str = "") -> Selection:
+    """``sel`` without the accepted causes ``keys``: the others refitted jointly, entries rebuilt.
+
+    The withdrawn causes stay in ``entries`` (``accepted: false``, ``withdrawn: reason``).
+    """
+    keys = set(keys)
+    if not keys:
+        return sel
+    kept = [s for s in sel.accepted if s.key not in keys]
+    split = {s.key: th for s, th, _ in sel.final.split()}
+    theta0 = np.concatenate([split[s.key] for s in kept]) if kept else None
+    final = fit_mean(stage, stage.corrections, kept, data, theta0=theta0, nuisance0=sel.final.nuisance,
+                     weights=weights)
+    entries = _entries(final, sel.steps, kept)
+    gone = []
+    for s, th, se in sel.final.split():
+        if s.key in keys:
+            gone.append(cause_entry(s, th, se, delta_bic=None, rank_deficient=bool(sel.final.rank_deficient),
+                                    equivalent=[], accepted=False, withdrawn=reason))
+    entries = entries[:len(kept)] + gone + [e for e in entries[len(kept):]
+                                            if _entry_key(e) not in keys]
+    return replace(sel, final=final, accepted=kept, entries=entries, withdrawn=tuple(sel.withdrawn) + tuple(keys))
+
+
+def _entry_key(e: dict) -> str:
+    a = e["params"].get("actuator")
+    return e["cause"] if a is None else f"{e['cause']}[{a}]"
+
+
+def backward(sel: Selection, stage: Stage, data: DiagnosisData, *, weights: np.ndarray | None = None,
+             alpha: float = 1e-3) -> list[str]:
+    """Accepted causes that no longer pay once the others are in the model (backward elimination).
+
+    Each cause of the final model is removed in turn (the others refitted, warm-started); its
+    likelihood-ratio test against the full model, Bonferroni over the causes, must have p < α.
+    The worst failing cause is dropped and the rest tested again.
+
+    Returns
+    -------
+    list of str
+        Keys to withdraw (may be empty).
+    """
+    kept = list(sel.accepted)
+    split = {s.key: th for s, th, _ in sel.final.split()}
+    current = sel.final
+    out: list[str] = []
+    while len(kept) >= 2:
+        worst, worst_p, worst_fit = None, -1.0, None
+        for spec in kept:
+            others = [s for s in kept if s is not spec]
+            f0 = fit_mean(stage, stage.corrections, others, data, theta0=np.concatenate([split[s.key] for s in others]),
+                          nuisance0=current.nuisance, weights=weights)
+            p = _lr_p(f0, current, len(kept))
+            if p > worst_p:
+                worst, worst_p, worst_fit = spec, p, f0
+        if worst_p < alpha:
+            break
+        out.append(worst.key)
+        kept.remove(worst)
+        current = worst_fit
+        split = {s.key: th for s, th, _ in current.split()}
     return out
