@@ -214,6 +214,10 @@ class Cause:
     nuisance : tuple of Nuisance
         Stage-physics numbers fitted with the cause (its prediction depends on them strongly
         and the config may have them wrong).
+    lifts_balls : bool
+        Whether the cause may lift a ball off (``contact_loss``). The spec defines every other
+        cause on a well-preloaded stage where no ball lifts off, so a fit of other causes whose
+        prediction lifts a ball is not that cause (a diagnosis discards it).
     """
 
     name: ClassVar[str] = ""
@@ -223,6 +227,7 @@ class Cause:
     meaning: ClassVar[str] = ""
     needs: ClassVar[tuple[str, ...]] = ()
     nuisance: ClassVar[tuple[Nuisance, ...]] = ()
+    lifts_balls: ClassVar[bool] = False
 
     # ---- values ------------------------------------------------------------------------
     @classmethod
@@ -446,6 +451,7 @@ class ContactLoss(Cause):
     # where the ball unloads depends on the gap *relative to* the preload compression, which a
     # stage preloaded differently from its config does not share: fitted with the gap
     nuisance: ClassVar[tuple[Nuisance, ...]] = (PRELOAD_COMPRESSION,)
+    lifts_balls: ClassVar[bool] = True
 
     def apply(self, parts: StageParts) -> None:
         parts.gap_um[self.actuator - 1] = self.gap_um

@@ -46,13 +46,9 @@ def _run(args: argparse.Namespace) -> int:
                              progress=lambda info: prog.step(1, info))
     report = write_outputs(diag, out)
     if not args.quiet:
-        d = report["discrepancy"]
-        acc = report["accepted"]
-        print(f"rows {report['rows']}  AFM RMSE {d['afm_rmse_um']:.4g} µm  noise {d['noise_std_um']:.3g} µm  "
-              f"significant {'yes' if d['significant'] else 'no'} (p = {d['p_value']:.3g})")
-        print(f"accepted mean causes: {', '.join(acc['mean']) or 'none'};  noise: {', '.join(acc['noise'])}")
-        if "gain" in report:
-            g = report["gain"]["rmse_um"]
-            print("held-out RMSE (µm): " + "  ".join(f"{k} {v:.4g}" for k, v in g.items()))
+        from microctl.diagnosis.report import summary_lines
+
+        for line in summary_lines(report):
+            print(line)
         print(f"wrote {out / 'report.json'}, {out / 'report.md'}, {out / 'extended.yaml'}", file=sys.stdout)
     return 0

@@ -169,6 +169,12 @@ def predict(stage: Stage, effects: Effects, data: DiagnosisData) -> np.ndarray:
     return ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s).t
 
 
+def lifts_a_ball(stage: Stage, effects: Effects, data: DiagnosisData) -> bool:
+    """Whether a ball is out of contact at some move of ``data`` under ``effects``."""
+    pred = ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    return not bool(pred.active.all())
+
+
 @dataclass(frozen=True, eq=False)
 class MeanFit:
     """A fitted set of mean causes.
@@ -200,6 +206,9 @@ class MeanFit:
         The stage with the fitted nuisances (the model the prediction used).
     jac : ndarray, shape (n, k + len(nuisance)) or None
         Unweighted Jacobian of the prediction at the optimum (parameters then nuisances).
+    unphysical : bool
+        The fitted causes lift a ball off somewhere though none of them may
+        (:attr:`microctl.causes.Cause.lifts_balls`): not the causes they claim to be.
     """
 
     specs: tuple[CauseSpec, ...]
@@ -218,6 +227,7 @@ class MeanFit:
     nuisance_se: dict = field(default_factory=dict)
     stage: Stage | None = None
     jac: np.ndarray | None = None
+    unphysical: bool = False
 
     @property
     def k(self) -> int:
@@ -384,5 +394,7 @@ def fit_mean(
     pred = predict(st, eff, data)
     z = zero_of(pred)
     jac = res.jac / np.where(w > 0, w, 1.0)[:, None]
+    unphysical = (not any(s.cls.lifts_balls for s in specs)) and lifts_a_ball(st, eff, data)
     return MeanFit(specs, x[:k_par], se[:k_par], rss, data.n, pred + z, eff, deficient, res.message, z,
-                   zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st, jac)
+                   zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st, jac,
+                   unphysical)

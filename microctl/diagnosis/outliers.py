@@ -3,7 +3,9 @@
 A corrupt cell in a log (a command typed as 50 µm, a reading off by tens of µm) is one row
 that disagrees with every model; a least-squares fit would bend a cause to it. Two tests,
 both at the per-run level α/4 with a Bonferroni correction over the n rows (critical
-|z| = Φ⁻¹(1 − α/(8n)), 4.9 for n = 300):
+|z| = Φ⁻¹(1 − α/(8n)), 4.9 for n = 300). Outliers are rare by nature: when more than
+:data:`MAX_OUTLIER_FRACTION` of the rows are beyond the critical value, they are a region the
+model gets wrong (structure), and none is set aside.
 
 1. :func:`screen` — before any cause is fitted: the residual of the configured model is fitted
    *robustly* (Tukey bisquare, iteratively reweighted least squares from a Huber start) by the
@@ -38,6 +40,11 @@ HUBER_C = 1.345
 
 #: Most IRLS iterations per stage.
 MAX_IRLS = 50
+
+#: Largest share of the rows that can be outliers: more rows beyond the critical value are a
+#: region the model gets wrong (structure, e.g. a ball lifting off over part of the workspace),
+#: not corrupt cells, and none of them is set aside.
+MAX_OUTLIER_FRACTION = 0.05
 
 
 def critical_z(n: int, alpha: float) -> float:
@@ -105,7 +112,12 @@ def screen(resid: np.ndarray, data: DiagnosisData, alpha: float) -> np.ndarray:
     r, s = robust_residual(generic_basis(data), resid)
     if s <= 0:
         return np.zeros(data.n, dtype=bool)
-    return np.abs(r) > critical_z(data.n, alpha) * s
+    return _rare(np.abs(r) > critical_z(data.n, alpha) * s)
+
+
+def _rare(flags: np.ndarray) -> np.ndarray:
+    """``flags`` if at most :data:`MAX_OUTLIER_FRACTION` of the rows, else none (structure, not outliers)."""
+    return flags if flags.sum() <= MAX_OUTLIER_FRACTION * flags.size else np.zeros_like(flags)
 
 
 def extreme_rows(reference: np.ndarray, values: np.ndarray, alpha: float) -> np.ndarray:
@@ -153,7 +165,7 @@ def test_rows(resid: np.ndarray, std: np.ndarray, fitted: np.ndarray, alpha: flo
     s = tail_scale(z[fitted]) if fitted.sum() > 2 else 1.0
     s = max(s, 1e-12)
     zc = critical_z(resid.size, alpha)
-    return RowTest(np.abs(z) > zc * s, z / s, zc, s)
+    return RowTest(_rare(np.abs(z) > zc * s), z / s, zc, s)
 
 
 def suspect_cells(data: DiagnosisData, K: np.ndarray, rows: np.ndarray, names: tuple[str, ...],

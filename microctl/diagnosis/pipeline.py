@@ -123,6 +123,11 @@ def _name(stage, data: DiagnosisData, a_each: float, seed: int, progress) -> Nam
             sel = withdraw(sel, grd.withdrawn, stage, data, weights=weights,
                            reason="the flexible term (generic basis + GP) explains its contribution as well")
             left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    if sel.final.unphysical:
+        # after a withdrawal the others lift a ball, which none of them may: they are not these causes
+        sel = withdraw(sel, [sp.key for sp in sel.accepted], stage, data, weights=weights,
+                       reason="without the withdrawn causes, these lift a ball off, which none of them may")
+        left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
     if left.significant:
         # the noise causes are fitted on what the mean model *and* the flexible term leave: structure
         # is not scatter
@@ -249,7 +254,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     if unexplained:
         accepted_mean.append("unexplained")
         mean_entries.insert(len(sel.accepted), {
-            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": 0.0, "p_value": p_left,
+            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": None, "p_value": p_left,
             "equivalent": [], "accepted": True, "tests": left.tests(),
         })
 
@@ -269,9 +274,17 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     timing["total_s"] = time.perf_counter() - t_start
 
     where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
+    # share of the mean reading variance of each accepted noise cause (the printed noise line)
+    J = _sensitivity(sel.final, data)
+    share = {"homoscedastic": noise.fit.std_um**2}
+    for j, a in enumerate(noise.fit.friction):
+        share[f"actuator_friction[{a}]"] = float(np.mean((J[:, a - 1] * noise.fit.std_per_um[j] * data.dq[:, a - 1]) ** 2))
+    tot = sum(share.values()) or 1.0
+    share = {k: float(v / tot) for k, v in share.items()}
     noise_std = noise.fit.std_um
     report = {
-        "rows": data.n,
+        "rows": all_data.n,
+        "rows_fitted": data.n,
         "source": data.source,
         "discrepancy": {
             "significant": significant,
@@ -281,7 +294,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
             "noise_std_um": float(noise_std),
             "p_value": p_disc,
             "alpha": alpha,
-            "test": ("Bonferroni minimum of: F-test of the model residual against a generic basis, "
+            "test": ("Bonferroni minimum of: F-tests of the model residual against generic bases, "
                      "best-cause likelihood ratio, GP-vs-white-noise likelihood ratio, Breusch-Pagan on abs(Δq)"),
             "tests": [t.to_dict() for t in tests0],
             "where": where,
@@ -290,6 +303,9 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         "accepted": {"mean": accepted_mean, "noise": list(noise.accepted)},
         "mean_causes": mean_entries,
         "noise_causes": noise.entries,
+        "noise_summary": {"dominant": max(share, key=share.get), "variance_share": share,
+                          "note": "share of the mean reading variance over the moves (friction through the contact "
+                                  "sensitivity)"},
         "selection": {
             "stop_reason": sel.stop_reason,
             "weighted": weights is not None,
@@ -319,11 +335,16 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
         "nuisance": {
             "gauge_zero_um": float(sel.final.zero_um),
-            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um)},
-            "note": ("constant offset of the readings (the gauge zero is one noisy reading at the zero state); "
-                     "fitted in every mean model, not a stage cause, not written to extended.yaml"),
+            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um),
+                       **{k: (float(v) if np.isfinite(v) else None) for k, v in sel.final.nuisance_se.items()}},
+            **{k: float(v) for k, v in sel.final.nuisance.items()},
+            "note": ("gauge_zero_um: constant offset of the readings (the gauge zero is one noisy reading at the "
+                     "zero state); fitted in every mean model, not a stage cause, not written to extended.yaml. "
+                     "Stage-physics nuisances fitted with a cause (preload_compression_um with contact_loss) are "
+                     "written to extended.yaml's stage.physics"),
         },
         "corrections": ext_cfg.stage.corrections.to_dict(),
+        "physics_nuisance": ({k: float(v) for k, v in sel.final.nuisance.items()} if sel.final.nuisance else None),
         "timing_s": timing,
     }
     if g is not None:

@@ -356,6 +356,15 @@ def where_variables(data: DiagnosisData, stage_names: tuple[str, ...], dof: tupl
     return out
 
 
+def where_units(dof: tuple[str, ...], actuator_names: tuple[str, ...], tool: str) -> dict:
+    """Unit of each variable of :func:`where_variables` (for figure axes)."""
+    out = {f"u_{d}": ("mrad" if d.startswith("r") else "µm") for d in dof}
+    out[f"{tool}_prev"] = "µm"
+    out.update({f"{a}_prev": "µm" for a in actuator_names})
+    out["time_s"] = "s"
+    return out
+
+
 def where_analysis(resid: np.ndarray, data: DiagnosisData, actuator_names: tuple[str, ...],
                    dof: tuple[str, ...], tool: str) -> list[dict]:
     """Residual against each input, previous state, time and direction of approach.
