@@ -159,8 +159,8 @@ def test_off_vocabulary_effect_is_unexplained_and_names_no_cause(cfg, geo, shape
     curvature: ``unexplained``, and no vocabulary cause (a cause fitted to part of the structure
     is withdrawn when it does not pay alongside the flexible term)."""
     rng = np.random.default_rng(2000 + ind.OFF_VOCABULARY.index(shape))
-    truth, info = ind.plant_off_vocabulary(ind.random_truth(geo, rng), shape, rng, 250)
-    rep = run_diagnosis(cfg, _data(ind.run(truth, ind.random_moves(geo, 250, rng), rng)), gain=False).report
+    truth, info = ind.plant_off_vocabulary(ind.random_truth(geo, rng), shape, rng, 200)
+    rep = run_diagnosis(cfg, _data(ind.run(truth, ind.random_moves(geo, 200, rng), rng)), gain=False).report
     assert "unexplained" in rep["accepted"]["mean"], info
     assert _vocabulary(rep) == [], (info, rep["accepted"])
 

@@ -13,8 +13,9 @@ periodic error, a warm-up with a time constant, a direction-dependent curvature)
    the diagnosis names ``unexplained``.
 2. :func:`guard` — when structure is left, every accepted cause is fitted again *alongside F*:
    the generalised least-squares F-test of the model with the cause against the model without
-   it (refitted), both with B among the regressors and the GP fitted to the leftover as the
-   residual covariance Σ = K_GP + σ²I. A cause whose contribution F explains as well (e.g. an
+   it (refitted), both with B among the regressors and, as the residual covariance
+   Σ = K_GP + σ²I, the GP fitted to what the model *without* the cause leaves beyond B (so that
+   F has its chance to explain what the cause was fitted to). A cause whose contribution F explains as well (e.g. an
    actuator gain fitted to the linear part of a smooth bump) does not pay and is withdrawn:
    the structure it was fitted to is ``unexplained``, not that cause. When no structure is left
    F is not needed (its F-test is not significant), and each cause has paid its way against the
@@ -201,9 +202,38 @@ def _gls_rss(L: np.ndarray | None, X: np.ndarray, y: np.ndarray) -> tuple[float,
     return float(r @ r), int(rank)
 
 
+def _alongside(stage, data: DiagnosisData, B: np.ndarray, w: np.ndarray, X_gp: np.ndarray, full: MeanFit,
+               without: list, weights: np.ndarray | None) -> tuple[float, float, tuple, MeanFit]:
+    """GLS F-test of ``full`` against the model with only the causes ``without`` (refitted), both
+    with the basis B and the covariance of F's GP fitted to what the smaller model leaves beyond B.
+
+    Returns (F, p, df, the smaller model's fit)."""
+    split = {s.key: th for s, th, _ in full.split()}
+    theta0 = np.concatenate([split[s.key] for s in without]) if without else None
+    f0 = fit_mean(stage, stage.corrections, without, data, theta0=theta0, nuisance0=full.nuisance, weights=weights)
+    r0, r1 = w * (data.t - f0.pred), w * (data.t - full.pred)
+    X0 = np.hstack([B, w[:, None] * f0.jac])
+    X1 = np.hstack([B, w[:, None] * full.jac])
+    # F's GP fitted to what the smaller model leaves beyond the basis: F gets its chance to explain
+    # what the extra causes were fitted to
+    L = _whitener(fit_gp(X_gp, _ols_resid(X0, r0)), X_gp)
+    q0, p0 = _gls_rss(L, X0, r0)
+    q1, p1 = _gls_rss(L, X1, r1)
+    df2 = data.n - p1
+    if df2 < 5 or q1 <= 0:
+        return float("nan"), 1.0, (0, df2), f0
+    dk = max(p1 - p0, full.k - f0.k, 1)
+    F = max(q0 - q1, 0.0) / dk / (q1 / df2)
+    return float(F), float(stats.f.sf(F, dk, df2)), (dk, df2), f0
+
+
 def guard(stage, data: DiagnosisData, final: MeanFit, left: Leftover, *, weights: np.ndarray | None,
           alpha: float) -> GuardResult:
-    """Re-test every cause of ``final`` alongside F (see the module docstring).
+    """Re-test the causes of ``final`` alongside F (see the module docstring).
+
+    First all of them together against none (if they do not pay together, all are withdrawn);
+    then each against the others (refitted), withdrawing the worst that does not pay and testing
+    the rest again. Each test: :func:`_alongside`, at ``alpha`` (Bonferroni over the causes).
 
     Parameters
     ----------
@@ -213,11 +243,11 @@ def guard(stage, data: DiagnosisData, final: MeanFit, left: Leftover, *, weights
     final : MeanFit
         The accepted causes fitted jointly.
     left : Leftover
-        The significant leftover of ``final`` (gives the GP part of F).
+        The significant leftover of ``final`` (the reason F is needed).
     weights : ndarray (n,), optional
         1/std per row (the fits' weights).
     alpha : float
-        Level of each cause's test (Bonferroni over the causes).
+        Level of each test.
 
     Returns
     -------
@@ -227,27 +257,27 @@ def guard(stage, data: DiagnosisData, final: MeanFit, left: Leftover, *, weights
         return GuardResult()
     w = np.ones(data.n) if weights is None else weights
     B = generic_basis(data) * w[:, None]
-    L = _whitener(left.gp, gp_inputs(data))
-    r1 = w * (data.t - final.pred)
-    X1 = np.hstack([B, w[:, None] * final.jac])
-    q1, p1 = _gls_rss(L, X1, r1)
-    df2 = data.n - p1
+    X_gp = gp_inputs(data)
     out = GuardResult()
-    m = len(final.specs)
-    if df2 < 5 or q1 <= 0:
+    name = "GLS F-test alongside the flexible term (generic basis + GP)"
+    F, p, df, _ = _alongside(stage, data, B, w, X_gp, final, [], weights)
+    out.tests["all"] = Test(name + ": all accepted causes against none", F, p, df)
+    if p >= alpha:
+        out.withdrawn.extend(s.key for s in final.specs)
         return out
-    for j, spec in enumerate(final.specs):
-        others = [s for s in final.specs if s is not spec]
-        theta0 = np.concatenate([th for s, th, _ in final.split() if s is not spec]) if others else None
-        f0 = fit_mean(stage, stage.corrections, others, data, theta0=theta0, nuisance0=final.nuisance,
-                      weights=weights)
-        r0 = w * (data.t - f0.pred)
-        q0, p0 = _gls_rss(L, np.hstack([B, w[:, None] * f0.jac]), r0)
-        dk = max(p1 - p0, final.k - f0.k, 1)
-        F = max(q0 - q1, 0.0) / dk / (q1 / df2)
-        p = float(min(1.0, stats.f.sf(F, dk, df2) * m))
-        out.tests[spec.key] = Test("GLS F-test of the cause alongside the flexible term (generic basis + GP)",
-                                   F, p, (dk, df2))
-        if p >= alpha:
-            out.withdrawn.append(spec.key)
+    current = final
+    while len(current.specs) > 1:
+        m = len(current.specs)
+        worst, worst_p, worst_fit = None, -1.0, None
+        for spec in current.specs:
+            F, p, df, f0 = _alongside(stage, data, B, w, X_gp, current, [s for s in current.specs if s is not spec],
+                                      weights)
+            p = float(min(1.0, p * m))
+            out.tests[spec.key] = Test(name + ": the cause against the others", F, p, df)
+            if p > worst_p:
+                worst, worst_p, worst_fit = spec, p, f0
+        if worst_p < alpha:
+            break
+        out.withdrawn.append(worst.key)
+        current = worst_fit
     return out

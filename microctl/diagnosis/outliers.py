@@ -12,7 +12,7 @@ model gets wrong (structure), and none is set aside.
    generic basis B of :func:`~microctl.diagnosis.residuals.generic_basis`, which follows the
    smooth structure of any cause; rows whose robust residual exceeds the critical multiple of
    the robust scale (1.4826 × MAD) are set aside.
-2. :func:`test_rows` — after the causes are named on the other rows: the residual of the named
+2. :func:`row_test` — after the causes are named on the other rows: the residual of the named
    model at *every* row, less the flexible term F where structure is left
    (:class:`~microctl.diagnosis.flexible.Flexible`, a row's prediction from the other rows),
    standardised by the fitted noise model (friction included) plus F's own uncertainty, and by
@@ -148,7 +148,7 @@ class RowTest:
     scale: float
 
 
-def test_rows(resid: np.ndarray, std: np.ndarray, fitted: np.ndarray, alpha: float) -> RowTest:
+def row_test(resid: np.ndarray, std: np.ndarray, fitted: np.ndarray, alpha: float) -> RowTest:
     """Outliers among all rows of a named model (see the module docstring).
 
     Parameters

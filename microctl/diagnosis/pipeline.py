@@ -24,7 +24,7 @@ from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
-from microctl.diagnosis.outliers import RowTest, extreme_rows, screen, suspect_cells, test_rows
+from microctl.diagnosis.outliers import RowTest, extreme_rows, row_test, screen, suspect_cells
 from microctl.diagnosis.residuals import Test, breusch_pagan, gp_inputs, gp_lr_test, where_analysis
 from microctl.diagnosis.selection import Selection, backward, select_mean_causes, withdraw
 
@@ -150,7 +150,7 @@ def _test_rows(named: Named, data: DiagnosisData, keep: np.ndarray, a_each: floa
         flex = Flexible.fit(data, keep, r[keep], gp)
         smooth, var_f = flex.values, flex.var
     std = np.sqrt(named.noise.fit.variance(pred.sensitivity, data.dq) + var_f)
-    test = test_rows(r - smooth, std, keep, a_each)
+    test = row_test(r - smooth, std, keep, a_each)
     if named.left.significant:
         # the flexible term only approximates structure no cause names (it extrapolates poorly at
         # the corners of the workspace): a row is an outlier only if it is also extreme against the

@@ -299,7 +299,9 @@ def fit_gp(X: np.ndarray, y: np.ndarray, max_points: int = GP_MAX_POINTS, seed: 
     d = X.shape[1]
     bounds = [(np.log(0.05), np.log(30.0))] * d + [(-12.0, 3.0), (-12.0, 1.0)]
     best = None
-    for ls0, f0 in ((1.0, 0.3), (0.3, 0.5), (3.0, 0.3)):  # the long start reaches binary inputs (directions)
+    # the long start with most variance in the signal reaches binary inputs (directions) and a
+    # structure in one input among many before the optimiser drops the signal
+    for ls0, f0 in ((1.0, 0.3), (0.3, 0.5), (3.0, 0.7)):
         x0 = np.concatenate([np.full(d, np.log(ls0)), [np.log(f0), np.log(1 - f0)]])
         res = minimize(_gp_nll, x0, args=(Xs, ys, D), jac=True, method="L-BFGS-B", bounds=bounds,
                        options={"maxiter": 100})
