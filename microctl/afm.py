@@ -12,25 +12,29 @@ eq. 5-14 literally:
 - t = T_s (P_t^T J_h p + t0) (eq. 13), relative to the zero state: t = w · p;
 - f_a(s, u) = [t; q] with u = p (eq. 14).
 
-Static model corrections of the stage (``stage.corrections``: actuator gain, contact
-offset, tool offset, sensor scale and nonlinearity) are applied to the *prediction*:
-the command is still q = K u from the CAD geometry, the balls move G q, the platform
-settles at the least-squares pose of the (shared elastic) contact heights, and the gauge
-reads scale·d + quad·d². Causes that need the state or time (backlash, contact loss,
-drift) belong to the physics model (:mod:`microctl.physics`), not here.
+Static model corrections of the stage (``stage.corrections``, the ``static`` kind of the
+cause registry :mod:`microctl.causes`: actuator gain, contact offset, tool offset, sensor
+scale and nonlinearity) are applied to the *prediction*: the command is still q = K u from
+the CAD geometry, the balls move G q, the platform settles at the least-squares pose of the
+(shared elastic) contact heights, and the gauge reads through :class:`~microctl.sensor.Sensor`.
+Causes that need the state, time or the contact physics (the ``dynamic`` kind: backlash,
+contact loss, drift) belong to the physics model (:mod:`microctl.physics`), not here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Sequence
 
 import casadi as ca
 import numpy as np
 from scipy.optimize import linprog
 
+from microctl.causes import MEAN_KINDS, REGISTRY, StageParts, stage_parts
 from microctl.config import TWIST_COMPONENTS, Effects, Stage
 from microctl.errors import ConfigError, SolveError
+from microctl.sensor import Sensor
 
 
 def skew(r: Sequence[float]) -> np.ndarray:
@@ -65,6 +69,11 @@ def contact_frame(normal: Sequence[float]) -> np.ndarray:
 
     The choice of o_i and a_i is arbitrary (the paper's words); H_i keeps only n_i.
     """
+    return _contact_frame(tuple(float(x) for x in normal)).copy()
+
+
+@lru_cache(maxsize=64)
+def _contact_frame(normal: tuple[float, ...]) -> np.ndarray:
     n = np.asarray(normal, dtype=float)
     helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     o = np.cross(n, helper)
@@ -73,25 +82,15 @@ def contact_frame(normal: Sequence[float]) -> np.ndarray:
     return np.column_stack([n, o, a])
 
 
-def _contacts(stage: Stage, corrections: Effects | None = None) -> list[np.ndarray]:
-    offsets = {c.actuator - 1: (c.dx_mm, c.dy_mm) for c in (corrections.contact_offset if corrections else ())}
-    out = []
-    for i, a in enumerate(stage.actuators):
-        c = np.array(a.contact_mm, dtype=float)
-        if i in offsets:
-            c[:2] += offsets[i]
-        out.append(c)
-    return out
-
-
-def contact_map(stage: Stage, corrections: Effects | None = None) -> tuple[np.ndarray, np.ndarray]:
+def contact_map(stage: Stage, corrections: Effects | StageParts | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The stacked contact matrices of eq. 9.
 
     Parameters
     ----------
     stage : Stage
-    corrections : Effects, optional
-        Contact offsets to apply to the CAD contact points.
+    corrections : Effects or StageParts, optional
+        Causes to apply to the CAD contact points (contact offsets), or the stage's parts
+        with them already applied (:func:`microctl.causes.stage_parts`).
 
     Returns
     -------
@@ -105,7 +104,8 @@ def contact_map(stage: Stage, corrections: Effects | None = None) -> tuple[np.nd
     H_rows_P = []
     H_i = np.zeros((1, 6))
     H_i[0, 0] = 1.0  # eq. 8: only the normal translational component is transmitted
-    for i, (a, c) in enumerate(zip(stage.actuators, _contacts(stage, corrections))):
+    parts = corrections if isinstance(corrections, StageParts) else stage_parts(stage, corrections, MEAN_KINDS)
+    for i, (a, c) in enumerate(zip(stage.actuators, parts.contacts_mm)):
         R = contact_frame(a.normal)
         Rbar = np.zeros((6, 6))
         Rbar[:3, :3] = R
@@ -117,21 +117,21 @@ def contact_map(stage: Stage, corrections: Effects | None = None) -> tuple[np.nd
     return np.vstack(H_rows_J), np.vstack(H_rows_P)
 
 
-def inverse_kinematics_matrix(stage: Stage, corrections: Effects | None = None) -> np.ndarray:
+def inverse_kinematics_matrix(stage: Stage, corrections: Effects | StageParts | None = None) -> np.ndarray:
     """K of eq. 12, q = K p, shape (n_q, n_p)."""
     hrj, hrp = contact_map(stage, corrections)
     return np.linalg.solve(hrj, hrp @ hinge_jacobian(stage.dof))
 
 
-def tool_vector(stage: Stage, corrections: Effects | None = None) -> np.ndarray:
+def tool_vector(stage: Stage, corrections: Effects | StageParts | None = None) -> np.ndarray:
     """w of eq. 13, t = w · p relative to the zero state, shape (n_p,).
 
     T_s (P_t^T J_h p + t0) with T_s = [s^T 0]: the gauge reads the translation of the tool
     point along the sensor direction s; the constant T_s t0 cancels against the zero state.
+    ``corrections`` (Effects or StageParts) may move t0 (a tool offset).
     """
-    t0 = np.array(stage.tool.point_mm, dtype=float)
-    if corrections is not None and corrections.tool_offset is not None:
-        t0[:2] += (corrections.tool_offset.dx_mm, corrections.tool_offset.dy_mm)
+    parts = corrections if isinstance(corrections, StageParts) else stage_parts(stage, corrections, MEAN_KINDS)
+    t0 = parts.tool_mm
     Ts = np.concatenate([np.asarray(stage.tool.direction, dtype=float), np.zeros(3)])
     return Ts @ twist_transfer(t0).T @ hinge_jacobian(stage.dof)
 
@@ -218,8 +218,9 @@ class AnalyticForwardModel:
         ``F K = I`` when there are none).
     w_pred : ndarray, shape (n_p,)
         Tool map of the corrected geometry.
-    scale, quad : float
-        Gauge scale and quadratic coefficient (1 and 0 without corrections).
+    sensor : Sensor
+        The gauge transfer under the static corrections (forward, derivative, inverse);
+        ``scale`` and ``quad`` are its coefficients.
     f_a, ik, tool : casadi.Function
         Named Functions: ``f_a(s, u) -> (t, q)``, ``ik(u) -> q``, ``tool(u) -> t``.
     """
@@ -232,19 +233,15 @@ class AnalyticForwardModel:
         self.K = inverse_kinematics_matrix(stage)
         self.w = tool_vector(stage)
         corr = stage.corrections
-        unsupported = [n for n in ("backlash", "contact_loss", "drift") if getattr(corr, n)]
-        self.dynamic_corrections = tuple(unsupported)
+        self.dynamic_corrections = tuple(n for n, c in REGISTRY.items() if c.kind == "dynamic" and getattr(corr, n))
         # Static corrections: balls move G q (gains), the platform settles at the pose whose
         # contact heights best match them (elastic sharing among equal contacts: least squares),
-        # the gauge reads the corrected tool point with scale and quadratic term.
-        gains = np.ones(self.n_q)
-        for g in corr.actuator_gain:
-            gains[g.actuator - 1] = g.gain
-        K_true = inverse_kinematics_matrix(stage, corr)
-        self.F = np.linalg.pinv(K_true) @ np.diag(gains)
-        self.w_pred = tool_vector(stage, corr) @ self.F @ self.K
-        self.scale = corr.sensor_scale.scale if corr.sensor_scale else 1.0
-        self.quad = corr.sensor_nonlinearity.quad_per_um if corr.sensor_nonlinearity else 0.0
+        # the gauge reads the corrected tool point through the corrected sensor.
+        parts = stage_parts(stage, corr, ("static",))
+        K_true = inverse_kinematics_matrix(stage, parts)
+        self.F = np.linalg.pinv(K_true) @ np.diag(parts.gain)
+        self.w_pred = tool_vector(stage, parts) @ self.F @ self.K
+        self.sensor: Sensor = parts.sensor
         self.lo = stage.range_lo
         self.hi = stage.range_hi
         self.workspace = Workspace(
@@ -272,15 +269,22 @@ class AnalyticForwardModel:
         """Entries of the state s = [t; q]."""
         return (self.stage.tool.name, *self.stage.actuator_names)
 
-    # ---- CasADi ------------------------------------------------------------------
-    def _sensor(self, d):
-        return self.scale * d + self.quad * d * d
+    @property
+    def scale(self) -> float:
+        """Gauge scale of the static corrections (``sensor.scale``)."""
+        return self.sensor.scale
 
+    @property
+    def quad(self) -> float:
+        """Gauge quadratic coefficient of the static corrections (``sensor.quad_per_um``), 1/µm."""
+        return self.sensor.quad_per_um
+
+    # ---- CasADi ------------------------------------------------------------------
     def _build_casadi(self) -> None:
         u = ca.MX.sym("u", self.n_p)
         s = ca.MX.sym("s", self.n_s)
         q = ca.mtimes(ca.DM(self.K), u)  # eq. 12
-        t = self._sensor(ca.dot(ca.DM(self.w_pred), u))  # eq. 13 (+ static corrections)
+        t = self.sensor.forward(ca.dot(ca.DM(self.w_pred), u))  # eq. 13 (+ static corrections)
         self.ik = ca.Function("ik", [u], [q], ["u"], ["q"])
         self.tool = ca.Function("tool", [u], [t], ["u"], ["t"])
         # s is an input for the interface of eq. 14; this AFM is absolute (relative to the
@@ -294,7 +298,7 @@ class AnalyticForwardModel:
 
     def t_of(self, u: np.ndarray, s: np.ndarray | None = None) -> np.ndarray:
         """Predicted tool pose t (eq. 13); u shape (n_p,) or (m, n_p); s ignored (absolute AFM)."""
-        return self._sensor(np.asarray(u, dtype=float) @ self.w_pred)
+        return self.sensor.forward(np.asarray(u, dtype=float) @ self.w_pred)
 
     def predict(self, s: np.ndarray | None, u: np.ndarray) -> np.ndarray:
         """f_a(s, u) = [t; q] (eq. 14); returns shape (n_s,) or (m, n_s)."""
@@ -310,12 +314,7 @@ class AnalyticForwardModel:
         """
         d_lo = _lp_extreme(self.w_pred, self.K, self.lo, self.hi)
         d_hi = -_lp_extreme(-self.w_pred, self.K, self.lo, self.hi)
-        cands = [self._sensor(d_lo), self._sensor(d_hi)]
-        if self.quad != 0.0:
-            d_star = -self.scale / (2 * self.quad)
-            if d_lo < d_star < d_hi:
-                cands.append(self._sensor(d_star))
-        return float(min(cands)), float(max(cands))
+        return self.sensor.reading_range(d_lo, d_hi)
 
     def zero_state(self) -> np.ndarray:
         """The zero state s = [t; q] = 0, shape (n_s,)."""

@@ -25,6 +25,20 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
+from microctl.causes import (  # noqa: F401  (re-exported: the config's cause entries)
+    MEAN_KINDS,
+    REGISTRY,
+    ActuatorFriction,
+    ActuatorGain,
+    Backlash,
+    ContactLoss,
+    ContactOffset,
+    Drift,
+    Effects,
+    SensorNonlinearity,
+    SensorScale,
+    ToolOffset,
+)
 from microctl.errors import ConfigError
 from microctl.fields import FieldReader
 
@@ -127,125 +141,8 @@ class Physics:
     flexure_stiffness: tuple[float, ...] = (0.01, 5.0, 5.0)
 
 
-# ---- causes / effects (shared/spec/diagnosis.md vocabulary) --------------------------
-
-
-@dataclass(frozen=True)
-class ActuatorGain:
-    """Actuator ``actuator`` (1-based) moves ``gain`` × its command."""
-
-    actuator: int
-    gain: float
-
-
-@dataclass(frozen=True)
-class ContactOffset:
-    """Ball ``actuator`` touches the platform (dx_mm, dy_mm) away from its CAD point."""
-
-    actuator: int
-    dx_mm: float
-    dy_mm: float
-
-
-@dataclass(frozen=True)
-class ToolOffset:
-    """The measured point is (dx_mm, dy_mm) away from its CAD position t0."""
-
-    dx_mm: float
-    dy_mm: float
-
-
-@dataclass(frozen=True)
-class SensorScale:
-    """The gauge reads ``scale`` × the true displacement."""
-
-    scale: float
-
-
-@dataclass(frozen=True)
-class SensorNonlinearity:
-    """The gauge adds ``quad_per_um`` × d² to a displacement d."""
-
-    quad_per_um: float
-
-
-@dataclass(frozen=True)
-class ContactLoss:
-    """Ball ``actuator`` sits ``gap_um`` low (lost preload)."""
-
-    actuator: int
-    gap_um: float
-
-
-@dataclass(frozen=True)
-class Backlash:
-    """Actuator ``actuator`` ends ``lag_um`` short of its command in its last direction."""
-
-    actuator: int
-    lag_um: float
-
-
-@dataclass(frozen=True)
-class Drift:
-    """The reading creeps by ``rate_um_per_s`` per second."""
-
-    rate_um_per_s: float
-
-
-@dataclass(frozen=True)
-class ActuatorFriction:
-    """Stick-slip at ball ``actuator``: scatter std = ``std_per_um`` × |Δq_i|."""
-
-    actuator: int
-    std_per_um: float
-
-
-@dataclass(frozen=True)
-class Effects:
-    """A set of physical causes; used as simulator truth and as model corrections.
-
-    Per-actuator causes are tuples (at most one entry per actuator); global causes are
-    ``None`` when absent.
-    """
-
-    actuator_gain: tuple[ActuatorGain, ...] = ()
-    contact_offset: tuple[ContactOffset, ...] = ()
-    tool_offset: ToolOffset | None = None
-    sensor_scale: SensorScale | None = None
-    sensor_nonlinearity: SensorNonlinearity | None = None
-    contact_loss: tuple[ContactLoss, ...] = ()
-    backlash: tuple[Backlash, ...] = ()
-    drift: Drift | None = None
-    actuator_friction: tuple[ActuatorFriction, ...] = ()
-
-    def is_empty(self) -> bool:
-        """Whether no cause is set."""
-        return all(not getattr(self, f.name) for f in fields(self))
-
-    def to_dict(self) -> dict[str, Any]:
-        """The YAML form (only the causes that are set)."""
-        out: dict[str, Any] = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not value:
-                continue
-            out[f.name] = [asdict(v) for v in value] if isinstance(value, tuple) else asdict(value)
-        return out
-
-
-_PER_ACTUATOR_CAUSES: dict[str, type] = {
-    "actuator_gain": ActuatorGain,
-    "contact_offset": ContactOffset,
-    "contact_loss": ContactLoss,
-    "backlash": Backlash,
-    "actuator_friction": ActuatorFriction,
-}
-_GLOBAL_CAUSES: dict[str, type] = {
-    "tool_offset": ToolOffset,
-    "sensor_scale": SensorScale,
-    "sensor_nonlinearity": SensorNonlinearity,
-    "drift": Drift,
-}
+# ---- causes / effects: the vocabulary lives in microctl.causes (one registry); the config
+# entries are its classes, re-exported here for the config's users.
 
 
 @dataclass(frozen=True)
@@ -487,50 +384,49 @@ class StageConfig:
 # --------------------------------------------------------------------------------------
 
 
-def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int) -> Effects:
+def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int, *, kinds: tuple[str, ...] | None = None
+                   ) -> Effects:
+    """Parse ``effects`` / ``corrections``: one key per cause of the registry (:mod:`microctl.causes`).
+
+    Per-actuator causes are lists (at most one entry per actuator), the others one mapping.
+    ``kinds`` restricts which kinds of cause are allowed here (a cause of another kind is a
+    one-line error saying so).
+    """
     if raw is None:
         return Effects()
-    allowed = list(_PER_ACTUATOR_CAUSES) + list(_GLOBAL_CAUSES)
-    raw = ctx.mapping(raw, path, allowed)
-    kwargs: dict[str, Any] = {}
-    for name, cls in _PER_ACTUATOR_CAUSES.items():
-        if name not in raw:
+    raw = ctx.mapping(raw, path, list(REGISTRY))
+    causes = []
+    for name, cls in REGISTRY.items():
+        if name not in raw or raw[name] is None:
+            continue
+        if kinds is not None and cls.kind not in kinds:
+            raise ctx.fail(f"{path}.{name}", f"is a {cls.kind} cause, not allowed here (allowed kinds: "
+                           f"{', '.join(kinds)})")
+        if not cls.per_actuator:
+            causes.append(_parse_cause(ctx, cls, raw[name], f"{path}.{name}", n_act))
             continue
         entries = raw[name]
         if not isinstance(entries, list):
             raise ctx.fail(f"{path}.{name}", "expected a list of entries, one per actuator")
         seen: set[int] = set()
-        items = []
         for k, entry in enumerate(entries):
-            items.append(_parse_cause(ctx, cls, entry, f"{path}.{name}[{k}]", n_act))
-            if items[-1].actuator in seen:
-                raise ctx.fail(f"{path}.{name}[{k}].actuator", f"actuator {items[-1].actuator} appears twice")
-            seen.add(items[-1].actuator)
-        kwargs[name] = tuple(items)
-    for name, cls in _GLOBAL_CAUSES.items():
-        if name in raw and raw[name] is not None:
-            kwargs[name] = _parse_cause(ctx, cls, raw[name], f"{path}.{name}", n_act)
-    return Effects(**kwargs)
-
-
-_CAUSE_RULES = {
-    "gain": {"positive": True},
-    "scale": {"positive": True},
-    "gap_um": {"nonneg": True},
-    "lag_um": {"nonneg": True},
-    "std_per_um": {"nonneg": True},
-}
+            c = _parse_cause(ctx, cls, entry, f"{path}.{name}[{k}]", n_act)
+            if c.actuator in seen:
+                raise ctx.fail(f"{path}.{name}[{k}].actuator", f"actuator {c.actuator} appears twice")
+            seen.add(c.actuator)
+            causes.append(c)
+    return Effects.of(causes)
 
 
 def _parse_cause(ctx: FieldReader, cls: type, raw: Any, path: str, n_act: int) -> Any:
     names = [f.name for f in fields(cls)]
     raw = ctx.mapping(raw, path, names, required=names)
-    kwargs = {}
-    for name in names:
-        if name == "actuator":
-            kwargs[name] = ctx.integer(raw[name], f"{path}.actuator", lo=1, hi=n_act)
-        else:
-            kwargs[name] = ctx.number(raw[name], f"{path}.{name}", **_CAUSE_RULES.get(name, {}))
+    kwargs: dict[str, Any] = {}
+    if cls.per_actuator:
+        kwargs["actuator"] = ctx.integer(raw["actuator"], f"{path}.actuator", lo=1, hi=n_act)
+    for p in cls.params:
+        rule = {"positive": {"positive": True}, "nonneg": {"nonneg": True}}.get(p.rule or "", {})
+        kwargs[p.name] = ctx.number(raw[p.name], f"{path}.{p.name}", **rule)
     return cls(**kwargs)
 
 
@@ -613,9 +509,9 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
         if k <= 0:
             raise ctx.fail(f"stage.physics.flexure_stiffness[{i}]", f"must be > 0, got {k!r}")
 
-    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
-    if corrections.actuator_friction:
-        raise ctx.fail("stage.corrections.actuator_friction", "is a noise cause; the GP models scatter")
+    # corrections are mean causes; a noise cause (scatter) is what the GP models
+    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators),
+                                 kinds=MEAN_KINDS)
     stage = Stage(
         name=name,
         dof=tuple(dof),

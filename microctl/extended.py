@@ -1,43 +1,54 @@
-"""The extended forward model: the stage model with every accepted correction, through the physics.
+"""The stage model: one object for the simulated stage, its oracle and the diagnosis.
 
 The AFM (:mod:`microctl.afm`, eq. 5-14) applies only the *static* corrections of
-``stage.corrections`` in the rigid least-squares limit. The extended model predicts the
-reading with *all* of them — including backlash (needs the direction each actuator last
-moved, i.e. the state s), contact loss (a ball lifting off: a kink) and drift (needs the
-time) — through the elastic contact equilibrium of :mod:`microctl.physics`:
+``stage.corrections`` in the rigid least-squares limit. :class:`ExtendedForwardModel`
+predicts the reading with *every* cause of the registry (:mod:`microctl.causes`) —
+including backlash (needs the direction each actuator last moved, i.e. the state),
+contact loss (a ball lifting off: a kink) and drift (needs the time) — through the elastic
+contact equilibrium of :mod:`microctl.physics`:
 
     q = K u                                  (eq. 12, CAD geometry: what the drivers get)
+    direction = approach_direction(q − q_prev, last)   (one rule, physics module)
     q_act = q − lag ⊙ direction              (backlash)
     h = (n·d) ⊙ gain ⊙ q_act − gap           (ball heights)
     p = argmin E(p; h)                       (contact equilibrium, physics module)
-    t = scale·d + quad·d² + drift·time,  d = w_true·(p − p_zero)
+    t = sensor.forward(d, time),  d = w_true·(p − p_zero)
 
-Its residual ``t − t_ext(s, u)`` is what the heteroscedastic GP is trained on for the
-"extended EAFM" (``microctl diagnose``, shared/spec/diagnosis.md step 3).
+The same object is the simulated stage's truth (:class:`~microctl.backends.simulated.SimulatedStage`
+moves through :meth:`~ExtendedForwardModel.actual_positions`, :meth:`~ExtendedForwardModel.pose`
+and :meth:`~ExtendedForwardModel.reading`, and its oracle's ``true_mean``/``true_var`` are
+:meth:`~ExtendedForwardModel.predict_q` and :meth:`~ExtendedForwardModel.variance`), and the
+diagnosis' model of a candidate set of causes. Its residual ``t − t_ext(s, u)`` is what the
+heteroscedastic GP is trained on for the "extended EAFM" (``microctl diagnose``,
+shared/spec/diagnosis.md step 3).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property, lru_cache
 
 import numpy as np
 
 from microctl.afm import inverse_kinematics_matrix
-from microctl.config import Effects, Stage
+from microctl.config import Effects, Physics, Stage
 from microctl.physics import (
+    ZERO_STATE_DIRECTION,
     actual_positions,
+    approach_direction,
     ball_heights,
     contact_model,
     directions_from_steps,
+    reading_variance,
     sensor_reading,
-    solve_equilibrium,
+    solve_with_zero,
     tool_sensitivity,
 )
 
 __all__ = ["ExtendedForwardModel", "ExtendedPrediction"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ExtendedPrediction:
     """Extended-model prediction at m moves.
 
@@ -47,16 +58,31 @@ class ExtendedPrediction:
         Expected reading, µm.
     q : ndarray, shape (m, n_q)
         Actuator commands q = K u, µm.
-    sensitivity : ndarray, shape (m, n_q)
-        d reading / d actual actuator displacement (to propagate actuator noise), µm/µm.
+    p : ndarray, shape (m, n_p)
+        Equilibrium platform poses.
     active : ndarray of bool, shape (m, n_q)
         Balls in contact.
+    model : ContactModel
+        The physics the prediction was made with.
     """
 
     t: np.ndarray
     q: np.ndarray
-    sensitivity: np.ndarray
+    p: np.ndarray
     active: np.ndarray
+    model: object
+
+    @cached_property
+    def sensitivity(self) -> np.ndarray:
+        """d reading / d actual actuator displacement (to propagate actuator noise), µm/µm, shape (m, n_q)."""
+        return tool_sensitivity(self.model, self.p, self.active)
+
+
+@lru_cache(maxsize=32)
+def _cad_inverse_kinematics(stage: Stage) -> np.ndarray:
+    K = inverse_kinematics_matrix(stage)
+    K.setflags(write=False)
+    return K
 
 
 class ExtendedForwardModel:
@@ -80,7 +106,8 @@ class ExtendedForwardModel:
     def __init__(self, stage: Stage, effects: Effects | None = None):
         self.stage = stage
         self.effects = stage.corrections if effects is None else effects
-        self.K = inverse_kinematics_matrix(stage)
+        # q = K u from the CAD geometry (what the drivers get), whatever the physics and corrections
+        self.K = _cad_inverse_kinematics(replace(stage, physics=Physics(), corrections=Effects()))
         self.model = contact_model(stage, self.effects)
 
     @property
@@ -88,20 +115,33 @@ class ExtendedForwardModel:
         """Size of the state s = [t; q]."""
         return 1 + self.stage.n_act
 
-    def _directions(self, q: np.ndarray, q_prev: np.ndarray | None, direction: np.ndarray | None) -> np.ndarray:
-        if direction is not None:
-            return np.broadcast_to(np.asarray(direction, dtype=float), q.shape)
-        if q_prev is None:
-            return np.ones_like(q)
-        # Δq_i = 0 keeps the previous row's direction (rows taken as one run), "up" at the start.
-        return directions_from_steps(q - np.broadcast_to(q_prev, q.shape), 1.0)
+    # ---- one move, step by step (the simulated stage moves through these) ---------------
+    @staticmethod
+    def next_direction(dq: np.ndarray, last: np.ndarray | float = ZERO_STATE_DIRECTION) -> np.ndarray:
+        """Direction of approach after steps ``dq`` from last directions ``last``
+        (:func:`microctl.physics.approach_direction`: a held actuator keeps ``last``)."""
+        return approach_direction(dq, last)
 
+    def actual_positions(self, q: np.ndarray, direction: np.ndarray | float) -> np.ndarray:
+        """Noise-free actual actuator positions (backlash), shape (m, n_q)."""
+        return actual_positions(self.model, q, direction)
+
+    def pose(self, q_actual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Contact equilibrium for actual actuator positions (m, n_q): pose (m, n_p), balls in contact (m, n_q)."""
+        return solve_with_zero(self.model, ball_heights(self.model, q_actual))
+
+    def reading(self, p: np.ndarray, time_s: np.ndarray | float | None = None) -> np.ndarray:
+        """Noise-free gauge reading of poses p (m, n_p) at ``time_s``, shape (m,)."""
+        return sensor_reading(self.model, p, time_s)
+
+    # ---- predictions ---------------------------------------------------------------------
     def predict_q(
         self,
         q: np.ndarray,
         *,
         q_prev: np.ndarray | None = None,
         direction: np.ndarray | None = None,
+        last_direction: np.ndarray | float = ZERO_STATE_DIRECTION,
         time_s: np.ndarray | float | None = None,
     ) -> ExtendedPrediction:
         """Prediction for actuator commands.
@@ -111,9 +151,15 @@ class ExtendedForwardModel:
         q : ndarray, shape (m, n_q) or (n_q,)
             Commands sent, µm.
         q_prev : ndarray, shape (m, n_q) or (n_q,), optional
-            Commands before each move (gives the backlash direction).
+            Commands before each move (gives the backlash direction by
+            :func:`~microctl.physics.approach_direction`). A 2-D ``q_prev`` with one row per
+            move is read as one run in execution order (a held actuator keeps the previous
+            row's direction, ``last_direction`` before the first row); a single state (n_q,)
+            as m alternative moves from it (each held actuator keeps ``last_direction``).
         direction : ndarray, shape (m, n_q), optional
             Explicit last-move directions ±1 (overrides ``q_prev``).
+        last_direction : float or ndarray (n_q,) or (m, n_q)
+            Direction of approach before the move(s) (+1, "up", for the zero state).
         time_s : ndarray (m,) or float, optional
             Settling times; without them the drift term is left out (time 0).
 
@@ -122,12 +168,17 @@ class ExtendedForwardModel:
         ExtendedPrediction
         """
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        qp = None if q_prev is None else np.atleast_2d(np.asarray(q_prev, dtype=float))
-        d = self._directions(q, qp, direction)
-        q_act = actual_positions(self.model, q, d)
-        p, active = solve_equilibrium(self.model, ball_heights(self.model, q_act))
-        t = sensor_reading(self.model, p, time_s)
-        return ExtendedPrediction(t=t, q=q, sensitivity=tool_sensitivity(self.model, p, active), active=active)
+        if direction is not None:
+            d = np.broadcast_to(np.asarray(direction, dtype=float), q.shape)
+        elif q_prev is None:
+            d = np.broadcast_to(np.asarray(last_direction, dtype=float), q.shape)
+        elif np.ndim(q_prev) == 1:
+            d = approach_direction(q - np.asarray(q_prev, dtype=float)[None, :], last_direction)
+        else:
+            d = directions_from_steps(q - np.atleast_2d(np.asarray(q_prev, dtype=float)), last_direction)
+        p, active = self.pose(self.actual_positions(q, d))
+        t = self.reading(p, time_s)
+        return ExtendedPrediction(t=t, q=q, p=p, active=active, model=self.model)
 
     def predict(
         self,
@@ -136,6 +187,7 @@ class ExtendedForwardModel:
         *,
         time_s: np.ndarray | float | None = None,
         direction: np.ndarray | None = None,
+        last_direction: np.ndarray | float = ZERO_STATE_DIRECTION,
     ) -> np.ndarray:
         """Expected reading t(s, u[, time]).
 
@@ -143,9 +195,12 @@ class ExtendedForwardModel:
         ----------
         s : ndarray, shape (n_s,) or (m, n_s), or None
             State before the move [t_prev; q_prev] (only q_prev matters, for backlash);
-            None: every actuator taken as having last moved up.
+            None: the moves start from the zero state.
         u : ndarray, shape (n_p,) or (m, n_p)
         time_s, direction : see :meth:`predict_q`
+        last_direction : float or ndarray (n_q,) or (m, n_q)
+            Direction each actuator last moved before state s (the state [t; q] does not hold
+            it; +1 for the zero state). An actuator held still keeps it.
 
         Returns
         -------
@@ -153,13 +208,19 @@ class ExtendedForwardModel:
         """
         u2 = np.atleast_2d(np.asarray(u, dtype=float))
         q = u2 @ self.K.T
-        q_prev = None
-        if s is not None and direction is None:
-            s2 = np.atleast_2d(np.asarray(s, dtype=float))
-            q_prev = np.broadcast_to(s2[:, 1:], q.shape)
-            # each row is a separate move from its own state: a zero step counts as "up"
-            direction = np.where(q > q_prev, 1.0, np.where(q < q_prev, -1.0, 1.0))
-        return self.predict_q(q, q_prev=q_prev, direction=direction, time_s=time_s).t
+        if direction is None:
+            q_prev = np.zeros_like(q) if s is None else np.broadcast_to(np.atleast_2d(np.asarray(s, dtype=float))[:, 1:],
+                                                                         q.shape)
+            # each row is a separate move from its own state (not a run)
+            direction = approach_direction(q - q_prev, last_direction)
+        return self.predict_q(q, direction=direction, time_s=time_s).t
+
+    def variance(self, prediction: ExtendedPrediction, dq: np.ndarray, *, actuator_std_um: float,
+                 gauge_std_um: float) -> np.ndarray:
+        """Variance of the readings of predicted moves with steps ``dq`` (m, n_q), µm², shape (m,)
+        (:func:`microctl.physics.reading_variance` with this model's stick-slip)."""
+        return reading_variance(prediction.sensitivity, dq, self.model.friction_std_per_um, actuator_std_um,
+                                gauge_std_um)
 
     def residual(self, data) -> np.ndarray:
         """Measured minus predicted reading for a :class:`~microctl.diagnosis.data.DiagnosisData`, (n,)."""

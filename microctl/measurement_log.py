@@ -221,6 +221,8 @@ class MeasurementLog:
         Every other column, as text.
     prev_from_columns : bool
         Whether ``s_prev`` came from ``*_prev`` columns.
+    implausible : tuple of ImplausibleRow
+        Rows the stage cannot have produced, when read with ``plausibility="report"``.
     """
 
     path: Path
@@ -231,6 +233,7 @@ class MeasurementLog:
     s_prev: np.ndarray
     time_s: np.ndarray | None
     extra: dict = field(default_factory=dict)
+    implausible: tuple = ()
     prev_from_columns: bool = True
 
     def __len__(self) -> int:
@@ -243,7 +246,7 @@ class MeasurementLog:
         return np.array([parse_number(text, self.path, k + 2, column) for k, text in enumerate(self.extra[column])])
 
 
-def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLog:
+def read_log(path: str | Path, stage: Stage, min_rows: int = 1, *, plausibility: str = "raise") -> MeasurementLog:
     """Read and validate a measurement log.
 
     Parameters
@@ -253,6 +256,11 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
         Gives the column names.
     min_rows : int
         Fewest rows the caller needs (e.g. for a fit).
+    plausibility : {"raise", "report"}
+        What a row the stage cannot have produced (:func:`implausible_rows`) does: ``raise``
+        (default: a DataError for the first) or ``report`` (kept, listed in
+        ``MeasurementLog.implausible``: for ``diagnose``, which sets such rows aside as
+        outliers and names them).
 
     Returns
     -------
@@ -312,14 +320,19 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLo
     extra = {
         c: tuple(row[j] for row in table.rows) for j, c in enumerate(table.header) if c not in used
     }
-    check_plausible(p, stage, u, q, t, s_prev if present else None, time_s)
+    if plausibility not in ("raise", "report"):
+        raise ValueError(f"plausibility must be 'raise' or 'report', got {plausibility!r}")
+    implausible = tuple(implausible_rows(stage, u, q, t, s_prev if present else None, time_s))
+    if implausible and plausibility == "raise":
+        raise _implausible_error(p, implausible[0])
     arrays = [seq_f, u, q, t, s_prev] + ([time_s] if time_s is not None else [])
     for a in arrays:
         a.setflags(write=False)
     seq = seq_f.astype(np.int64)
     seq.setflags(write=False)
     return MeasurementLog(
-        path=p, seq=seq, u=u, q=q, t=t, s_prev=s_prev, time_s=time_s, extra=extra, prev_from_columns=bool(present)
+        path=p, seq=seq, u=u, q=q, t=t, s_prev=s_prev, time_s=time_s, extra=extra, prev_from_columns=bool(present),
+        implausible=implausible,
     )
 
 
@@ -329,18 +342,36 @@ def plausible_t_bound_um(stage: Stage) -> float:
     return T_PLAUSIBLE_FACTOR * max(abs(lo), abs(hi), 1.0)
 
 
-def check_plausible(
-    path: Path | str,
+@dataclass(frozen=True)
+class ImplausibleRow:
+    """A log row no stage of the config can have produced (:func:`implausible_rows`).
+
+    Attributes
+    ----------
+    row : int
+        0-based data row (CSV line ``row + 2``).
+    column : str
+        The column at fault (or the pose columns, comma-separated).
+    message : str
+        What is wrong, without the file and row prefix.
+    """
+
+    row: int
+    column: str
+    message: str
+
+
+def implausible_rows(
     stage: Stage,
     u: np.ndarray,
     q: np.ndarray,
     t: np.ndarray,
     s_prev: np.ndarray | None = None,
     time_s: np.ndarray | None = None,
-) -> None:
-    """Refuse log rows that no stage of this config can have produced.
+) -> list[ImplausibleRow]:
+    """Every log row that no stage of this config can have produced, in row order.
 
-    Rules (each error names the file, the row and the column):
+    Rules:
 
     - u in the workspace: every K u (CAD inverse kinematics, eq. 12) within its actuator's
       ``range_um`` ± :data:`LOG_Q_TOLERANCE_UM`;
@@ -352,8 +383,6 @@ def check_plausible(
 
     Parameters
     ----------
-    path : path
-        For messages.
     stage : Stage
     u : ndarray, shape (n, n_p)
     q : ndarray, shape (n, n_q)
@@ -361,49 +390,34 @@ def check_plausible(
     s_prev : ndarray, shape (n, 1 + n_q), optional
         From ``*_prev`` columns (None: not in the file).
     time_s : ndarray, shape (n,), optional
-
-    Raises
-    ------
-    DataError
     """
+    out: list[ImplausibleRow] = []
     if len(t) == 0:
-        return
+        return out
     afm = AnalyticForwardModel(stage)
     names = stage.actuator_names
     lo, hi = stage.range_lo, stage.range_hi
     tol = LOG_Q_TOLERANCE_UM
     ucols = ",".join(pose_columns(stage))
 
-    def row_of(bad: np.ndarray) -> int:
-        return int(np.argmax(bad))
+    def each(bad: np.ndarray):
+        """(row, column index) of the first bad column of every bad row."""
+        for k in np.flatnonzero(bad.any(axis=1)):
+            yield int(k), int(np.argmax(bad[k]))
 
     Ku = u @ afm.K.T
-    bad = (Ku < lo - tol) | (Ku > hi + tol)
-    if bad.any():
-        k = row_of(bad.any(axis=1))
-        i = int(np.argmax(bad[k]))
-        raise DataError(
-            f"{path}: row {k + 2}, columns {ucols}: u = [{', '.join(f'{v:.6g}' for v in u[k])}] is outside the "
-            f"workspace: K u puts actuator {names[i]} at {Ku[k, i]:.4f} µm, outside its range "
-            f"[{lo[i]:g}, {hi[i]:g}] µm"
-        )
-    bad = (q < lo - tol) | (q > hi + tol)
-    if bad.any():
-        k = row_of(bad.any(axis=1))
-        i = int(np.argmax(bad[k]))
-        raise DataError(
-            f"{path}: row {k + 2}, column '{names[i]}': {q[k, i]:.6g} µm is outside the actuator's range "
-            f"[{lo[i]:g}, {hi[i]:g}] µm (range_um in the stage config; tolerance {tol:g} µm)"
-        )
-    bad = np.abs(q - Ku) > tol
-    if bad.any():
-        k = row_of(bad.any(axis=1))
-        i = int(np.argmax(bad[k]))
-        raise DataError(
-            f"{path}: row {k + 2}, column '{names[i]}': {q[k, i]:.6g} µm differs from K u = {Ku[k, i]:.6g} µm of "
-            f"this row's control signal by {abs(q[k, i] - Ku[k, i]):.3g} µm (tolerance {tol:g} µm); the log "
-            "does not belong to this stage geometry, or its q or u columns are wrong"
-        )
+    for k, i in each((Ku < lo - tol) | (Ku > hi + tol)):
+        out.append(ImplausibleRow(k, ucols, f"u = [{', '.join(f'{v:.6g}' for v in u[k])}] is outside the workspace: "
+                                            f"K u puts actuator {names[i]} at {Ku[k, i]:.4f} µm, outside its range "
+                                            f"[{lo[i]:g}, {hi[i]:g}] µm"))
+    for k, i in each((q < lo - tol) | (q > hi + tol)):
+        out.append(ImplausibleRow(k, names[i], f"{q[k, i]:.6g} µm is outside the actuator's range [{lo[i]:g}, "
+                                               f"{hi[i]:g}] µm (range_um in the stage config; tolerance {tol:g} µm)"))
+    for k, i in each(np.abs(q - Ku) > tol):
+        out.append(ImplausibleRow(k, names[i], f"{q[k, i]:.6g} µm differs from K u = {Ku[k, i]:.6g} µm of this row's "
+                                               f"control signal by {abs(q[k, i] - Ku[k, i]):.3g} µm (tolerance {tol:g} "
+                                               "µm); the log does not belong to this stage geometry, or its q or u "
+                                               "columns are wrong"))
     t_max = plausible_t_bound_um(stage)
     tname = stage.tool.name
     checks = [(tname, t)]
@@ -412,35 +426,48 @@ def check_plausible(
         q_prev = s_prev[:, 1:]
         lim_lo = np.array([a.limit_um[0] for a in stage.actuators])
         lim_hi = np.array([a.limit_um[1] for a in stage.actuators])
-        bad = (q_prev < lim_lo - tol) | (q_prev > lim_hi + tol)
-        if bad.any():
-            k = row_of(bad.any(axis=1))
-            i = int(np.argmax(bad[k]))
-            raise DataError(
-                f"{path}: row {k + 2}, column '{names[i]}_prev': {q_prev[k, i]:.6g} µm is outside the actuator's "
-                f"hardware limit [{lim_lo[i]:g}, {lim_hi[i]:g}] µm (limit_um in the stage config)"
-            )
+        for k, i in each((q_prev < lim_lo - tol) | (q_prev > lim_hi + tol)):
+            out.append(ImplausibleRow(k, f"{names[i]}_prev", f"{q_prev[k, i]:.6g} µm is outside the actuator's "
+                                                             f"hardware limit [{lim_lo[i]:g}, {lim_hi[i]:g}] µm "
+                                                             "(limit_um in the stage config)"))
     for name, col in checks:
-        bad = np.abs(col) > t_max
-        if bad.any():
-            k = row_of(bad)
-            raise DataError(
-                f"{path}: row {k + 2}, column '{name}': {col[k]:.6g} µm is implausible: the stage reaches at most "
-                f"|t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm and readings beyond {T_PLAUSIBLE_FACTOR:g} times that are "
-                "refused (wrong unit, an untared gauge or a corrupt file?)"
-            )
+        for k, _ in each((np.abs(col) > t_max)[:, None]):
+            out.append(ImplausibleRow(k, name, f"{col[k]:.6g} µm is implausible: the stage reaches at most |t| = "
+                                               f"{t_max / T_PLAUSIBLE_FACTOR:.6g} µm and readings beyond "
+                                               f"{T_PLAUSIBLE_FACTOR:g} times that are refused (wrong unit, an untared "
+                                               "gauge or a corrupt file?)"))
     if time_s is not None:
-        bad = (time_s < 0) | (time_s > MAX_TIME_S)
-        if bad.any():
-            k = row_of(bad)
-            raise DataError(
-                f"{path}: row {k + 2}, column 'time_s': {time_s[k]:.6g} s is outside [0, {MAX_TIME_S:g}] "
-                "(seconds since the start of the run)"
-            )
-        back = np.diff(time_s) < 0
-        if back.any():
-            k = row_of(back) + 1
-            raise DataError(
-                f"{path}: row {k + 2}, column 'time_s': {time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on "
-                f"row {k + 1}; time_s must not decrease in seq order"
-            )
+        for k, _ in each(((time_s < 0) | (time_s > MAX_TIME_S))[:, None]):
+            out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is outside [0, {MAX_TIME_S:g}] (seconds since "
+                                                   "the start of the run)"))
+        back = np.concatenate([[False], np.diff(time_s) < 0])
+        for k, _ in each(back[:, None]):
+            out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on row "
+                                                   f"{k + 1}; time_s must not decrease in seq order"))
+    return sorted(out, key=lambda r: r.row)
+
+
+def check_plausible(
+    path: Path | str,
+    stage: Stage,
+    u: np.ndarray,
+    q: np.ndarray,
+    t: np.ndarray,
+    s_prev: np.ndarray | None = None,
+    time_s: np.ndarray | None = None,
+) -> None:
+    """Refuse a log with a row no stage of this config can have produced (:func:`implausible_rows`).
+
+    Raises
+    ------
+    DataError
+        For the first such row: the file, the row (CSV line) and the column.
+    """
+    rows = implausible_rows(stage, u, q, t, s_prev, time_s)
+    if rows:
+        raise _implausible_error(path, rows[0])
+
+
+def _implausible_error(path: Path | str, r: ImplausibleRow) -> DataError:
+    col = f"columns {r.column}" if "," in r.column else f"column '{r.column}'"
+    return DataError(f"{path}: row {r.row + 2}, {col}: {r.message}")

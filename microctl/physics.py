@@ -20,14 +20,18 @@ vocabulary (``shared/spec/diagnosis.md``) acts as a *physical* change of the sta
   solved exactly by a damped semismooth Newton (active-set) iteration, vectorised over a
   batch of moves.
 - The gauge reads the tool point along its direction (eq. 13) with the tool offset,
-  relative to the noise-free zero state: d = w_true·(p − p_zero),
-  reading = scale·d + quad·d² + drift·time.
+  relative to the noise-free zero state: d = w_true·(p − p_zero), through the stage's
+  :class:`~microctl.sensor.Sensor` (reading = scale·d + quad·d² + drift·time).
+
+Every cause changes these numbers through its own :meth:`~microctl.causes.Cause.apply`
+(:func:`microctl.causes.stage_parts`); this module knows no cause by name.
 
 State-dependent causes: ``backlash`` makes actuator i end lag_i short of its command in
-the direction it last moved (a move with Δq_i = 0 keeps the previous direction; the
-zero state counts as approached from below, "up", so its actuator sits at −lag_i).
-``actuator_friction`` and the driver accuracy are noise (see :func:`tool_sensitivity`
-and :class:`microctl.backends.simulated.SimulatedStage`).
+the direction it last moved. The direction of approach has one rule,
+:func:`approach_direction`: a step larger than :data:`STILL_TOL_UM` sets it, an actuator
+held still (within the tolerance) keeps its last direction, and the zero state counts as
+approached from below ("up"), so its actuator sits at −lag_i. ``actuator_friction`` and the
+driver accuracy are noise (see :func:`tool_sensitivity` and :func:`reading_variance`).
 
 With the default :class:`~microctl.config.Physics` (k_c = 20 N/µm, preload 100 N,
 flexure (0.01, 5, 5)) each ball is compressed ≈ 1.25 µm at rest and a healthy stage
@@ -39,18 +43,28 @@ matches the rigid AFM to ≈ 0.01 µm. Every function accepts either a
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
 from microctl.afm import contact_map, hinge_jacobian, tool_vector
+from microctl.causes import stage_parts
 from microctl.config import Effects, Stage
 from microctl.errors import SolveError
+from microctl.sensor import Sensor
 
 #: Largest number of Newton iterations before :func:`solve_equilibrium` gives up.
 MAX_NEWTON_ITERATIONS = 60
 
 _ALPHAS = 0.5 ** np.arange(0, 40)
+
+#: An actuator step at most this large (µm) is "held still": the actuator keeps its last
+#: direction of approach. Covers the round-off of a command recomputed as K u (≈ 1e-12 µm);
+#: far below any physical step (the drivers' accuracy is 0.01 µm).
+STILL_TOL_UM = 1e-6
+
+#: Direction of approach of the zero state (every actuator approached from below, "up").
+ZERO_STATE_DIRECTION = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,12 +93,13 @@ class ContactModel:
         Contact stiffness, N/µm.
     w_true : ndarray, shape (n_p,)
         True tool map (eq. 13 with the tool offset).
-    scale, quad_per_um, drift_um_per_s : float
-        Gauge scale, quadratic coefficient and drift rate.
+    sensor : Sensor
+        Gauge transfer (scale, quadratic coefficient, drift rate).
     q_zero : ndarray, shape (n_c,)
         Actual actuator positions at the zero state (−lag: approached "up").
     p_zero : ndarray, shape (n_p,)
-        Noise-free equilibrium pose at the zero state (the gauge's zero).
+        Noise-free equilibrium pose at the zero state (the gauge's zero); solved on first use,
+        or together with a batch of moves by :func:`solve_with_zero`.
     """
 
     A: np.ndarray
@@ -97,11 +112,16 @@ class ContactModel:
     f_preload: np.ndarray
     k_c: float
     w_true: np.ndarray
-    scale: float
-    quad_per_um: float
-    drift_um_per_s: float
+    sensor: Sensor
     q_zero: np.ndarray
-    p_zero: np.ndarray
+
+    @cached_property
+    def p_zero(self) -> np.ndarray:
+        """Noise-free equilibrium pose at the zero state, shape (n_p,) (read-only)."""
+        p0, _ = solve_equilibrium(self, ball_heights(self, self.q_zero[None, :]))
+        p0 = p0[0]
+        p0.setflags(write=False)
+        return p0
 
     @property
     def n_p(self) -> int:
@@ -113,28 +133,33 @@ class ContactModel:
         """Number of contacts (= actuators)."""
         return self.A.shape[0]
 
+    @property
+    def scale(self) -> float:
+        """Gauge scale (``sensor.scale``)."""
+        return self.sensor.scale
+
+    @property
+    def quad_per_um(self) -> float:
+        """Gauge quadratic coefficient (``sensor.quad_per_um``), 1/µm."""
+        return self.sensor.quad_per_um
+
+    @property
+    def drift_um_per_s(self) -> float:
+        """Gauge drift rate (``sensor.drift_um_per_s``), µm/s."""
+        return self.sensor.drift_um_per_s
+
 
 def _preload_axis(stage: Stage) -> int:
     return stage.dof.index("z") if "z" in stage.dof else 0
 
 
-@lru_cache(maxsize=128)
+@lru_cache(maxsize=256)
 def _cached_model(stage: Stage, effects: Effects) -> ContactModel:
-    n_c, n_p = stage.n_act, stage.n_dof
-    hrj, hrp = contact_map(stage, effects)  # eq. 9 with the contact offsets
+    n_p = stage.n_dof
+    parts = stage_parts(stage, effects)  # every cause's physical change (microctl.causes)
+    hrj, hrp = contact_map(stage, parts)  # eq. 9 with the moved contact points
     A = hrp @ hinge_jacobian(stage.dof)  # a_i = H_i R̄_i^T P_i^T J_h
     nd = np.diag(hrj).copy()
-    per = {}
-    for name, attr in (
-        ("actuator_gain", "gain"),
-        ("contact_loss", "gap_um"),
-        ("backlash", "lag_um"),
-        ("actuator_friction", "std_per_um"),
-    ):
-        arr = np.ones(n_c) if attr == "gain" else np.zeros(n_c)
-        for c in getattr(effects, name):
-            arr[c.actuator - 1] = getattr(c, attr)
-        per[name] = arr
     ph = stage.physics
     k_h = np.asarray(ph.flexure_stiffness, dtype=float)
     j = _preload_axis(stage)
@@ -143,24 +168,19 @@ def _cached_model(stage: Stage, effects: Effects) -> ContactModel:
     model = ContactModel(
         A=A,
         nd=nd,
-        gain=per["actuator_gain"],
-        gap_um=per["contact_loss"],
-        lag_um=per["backlash"],
-        friction_std_per_um=per["actuator_friction"],
+        gain=parts.gain,
+        gap_um=parts.gap_um,
+        lag_um=parts.lag_um,
+        friction_std_per_um=parts.friction_std_per_um,
         k_h=k_h,
         f_preload=k_h * p_free,
         k_c=float(ph.contact_stiffness_n_per_um),
-        w_true=tool_vector(stage, effects),  # eq. 13 with the tool offset
-        scale=effects.sensor_scale.scale if effects.sensor_scale else 1.0,
-        quad_per_um=effects.sensor_nonlinearity.quad_per_um if effects.sensor_nonlinearity else 0.0,
-        drift_um_per_s=effects.drift.rate_um_per_s if effects.drift else 0.0,
-        q_zero=-per["backlash"],
-        p_zero=np.zeros(n_p),
+        w_true=tool_vector(stage, parts),  # eq. 13 with the moved tool point
+        sensor=parts.sensor,
+        q_zero=-parts.lag_um * ZERO_STATE_DIRECTION,  # backlash at the zero state, approached "up"
     )
-    p0, _ = solve_equilibrium(model, ball_heights(model, model.q_zero[None, :]))
-    object.__setattr__(model, "p_zero", p0[0])
     for arr in (model.A, model.nd, model.gain, model.gap_um, model.lag_um, model.friction_std_per_um,
-                model.k_h, model.f_preload, model.w_true, model.q_zero, model.p_zero):
+                model.k_h, model.f_preload, model.w_true, model.q_zero):
         arr.setflags(write=False)
     return model
 
@@ -263,12 +283,16 @@ def solve_equilibrium(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, n
         p_n, _ = _solve_active(model, Sp, hp)
         d = p_n - pp
         e0 = _energy(model, pp, hp)
-        trial = pp[:, None, :] + _ALPHAS[None, :, None] * d[:, None, :]
-        e = _energy(model, trial, hp[:, None, :])
-        etol = 1e-12 * (1.0 + np.abs(e0))[:, None]
-        ok = e <= e0[:, None] + etol
-        first = np.argmax(ok, axis=1)  # largest accepted step
-        alpha = np.where(ok.any(axis=1), _ALPHAS[first], 1.0)
+        etol = 1e-12 * (1.0 + np.abs(e0))
+        # the full step first (usually accepted); the halving ladder only where it is not
+        alpha = np.ones(len(pp))
+        bad = ~(_energy(model, p_n, hp) <= e0 + etol)
+        if bad.any():
+            trial = pp[bad, None, :] + _ALPHAS[None, 1:, None] * d[bad, None, :]
+            e = _energy(model, trial, hp[bad, None, :])
+            ok = e <= (e0 + etol)[bad, None]
+            first = np.argmax(ok, axis=1)  # largest accepted step
+            alpha[bad] = np.where(ok.any(axis=1), _ALPHAS[1:][first], 1.0)
         p[todo] = pp + alpha[:, None] * d
         active[todo] = Sp
         exact[todo] = alpha == 1.0
@@ -276,6 +300,19 @@ def solve_equilibrium(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, n
         f"contact equilibrium did not converge in {MAX_NEWTON_ITERATIONS} Newton iterations "
         f"for {int((~done).sum())} of {m} moves"
     )
+
+
+def solve_with_zero(model: ContactModel, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`solve_equilibrium` for heights h (m, n_c), solving the zero state (``model.p_zero``)
+    in the same batch when it is not known yet (one Newton run instead of two)."""
+    if "p_zero" in model.__dict__:
+        return solve_equilibrium(model, h)
+    h = np.atleast_2d(np.asarray(h, dtype=float))
+    p, active = solve_equilibrium(model, np.vstack([ball_heights(model, model.q_zero[None, :]), h]))
+    p0 = p[0].copy()
+    p0.setflags(write=False)
+    model.__dict__["p_zero"] = p0  # the cached_property's slot
+    return p[1:], active[1:]
 
 
 def equilibrium(
@@ -300,7 +337,49 @@ def equilibrium(
     return solve_equilibrium(model, ball_heights(model, q_actual))
 
 
-def move_directions(q_cmd: np.ndarray, q_start: np.ndarray | None = None, initial: np.ndarray | float = 1.0) -> np.ndarray:
+def approach_direction(dq: np.ndarray, last: np.ndarray | float = ZERO_STATE_DIRECTION,
+                       tol_um: float = STILL_TOL_UM) -> np.ndarray:
+    """The one direction-of-approach rule: the direction each actuator last moved after a step.
+
+    Parameters
+    ----------
+    dq : ndarray, shape (n_q,) or (m, n_q)
+        Commanded step of each actuator (q − q_before), µm.
+    last : float or ndarray broadcastable to ``dq``
+        Direction before the step (±1); the zero state's is +1 ("up").
+    tol_um : float
+        A step with abs(dq) <= tol_um is an actuator held still: it keeps ``last``.
+
+    Returns
+    -------
+    ndarray, shape of ``dq``
+        +1 / −1.
+    """
+    dq = np.asarray(dq, dtype=float)
+    last = np.broadcast_to(np.asarray(last, dtype=float), dq.shape)
+    return np.where(dq > tol_um, 1.0, np.where(dq < -tol_um, -1.0, last))
+
+
+def directions_from_steps(dq: np.ndarray, initial: np.ndarray | float = ZERO_STATE_DIRECTION,
+                          tol_um: float = STILL_TOL_UM) -> np.ndarray:
+    """:func:`approach_direction` along a run: steps dq (m, n_q) in execution order.
+
+    Row k's direction is that of its step, or row k−1's when actuator i is held still
+    (``initial`` before the first row). Returns shape (m, n_q), entries ±1.
+    """
+    dq = np.atleast_2d(np.asarray(dq, dtype=float))
+    m, n = dq.shape
+    # the rule row by row is a forward fill of the moving steps' signs
+    sign = approach_direction(dq, 0.0, tol_um)
+    init = np.broadcast_to(np.asarray(initial, dtype=float), (n,))
+    padded = np.vstack([init[None, :], sign])
+    idx = np.where(padded != 0, np.arange(m + 1)[:, None], 0)
+    idx = np.maximum.accumulate(idx, axis=0)
+    return np.take_along_axis(padded, idx, axis=0)[1:]
+
+
+def move_directions(q_cmd: np.ndarray, q_start: np.ndarray | None = None,
+                    initial: np.ndarray | float = ZERO_STATE_DIRECTION) -> np.ndarray:
     """Direction each actuator last moved, for a *sequence* of commands (backlash state).
 
     Parameters
@@ -315,7 +394,7 @@ def move_directions(q_cmd: np.ndarray, q_start: np.ndarray | None = None, initia
     Returns
     -------
     ndarray, shape (m, n_q)
-        +1 / −1; a row with Δq_i = 0 keeps the previous row's direction.
+        +1 / −1 by :func:`approach_direction` (a held actuator keeps the previous row's).
     """
     q = np.atleast_2d(np.asarray(q_cmd, dtype=float))
     start = np.zeros(q.shape[1]) if q_start is None else np.asarray(q_start, dtype=float)
@@ -323,31 +402,21 @@ def move_directions(q_cmd: np.ndarray, q_start: np.ndarray | None = None, initia
     return directions_from_steps(q - prev, initial)
 
 
-def directions_from_steps(dq: np.ndarray, initial: np.ndarray | float = 1.0) -> np.ndarray:
-    """Forward-filled sign of consecutive steps dq (m, n_q); zero steps keep the last sign."""
-    dq = np.atleast_2d(np.asarray(dq, dtype=float))
-    m, n = dq.shape
-    sign = np.sign(dq)
-    init = np.broadcast_to(np.asarray(initial, dtype=float), (n,))
-    padded = np.vstack([init[None, :], sign])
-    idx = np.where(padded != 0, np.arange(m + 1)[:, None], 0)
-    idx = np.maximum.accumulate(idx, axis=0)
-    return np.take_along_axis(padded, idx, axis=0)[1:]
-
-
-def actual_positions(model: ContactModel, q_cmd: np.ndarray, direction: np.ndarray | float = 1.0) -> np.ndarray:
+def actual_positions(model: ContactModel, q_cmd: np.ndarray,
+                     direction: np.ndarray | float = ZERO_STATE_DIRECTION) -> np.ndarray:
     """Noise-free actual actuator positions q − lag·direction (backlash), shape (m, n_q)."""
     q = np.atleast_2d(np.asarray(q_cmd, dtype=float))
     return q - model.lag_um * np.asarray(direction, dtype=float)
 
 
+def tool_displacement(model: ContactModel, p: np.ndarray) -> np.ndarray:
+    """Linear tool displacement d = w_true·(p − p_zero) (eq. 13 relative to the zero state), shape (m,)."""
+    return (np.atleast_2d(p) - model.p_zero) @ model.w_true
+
+
 def sensor_reading(model: ContactModel, p: np.ndarray, time_s: np.ndarray | float | None = None) -> np.ndarray:
-    """Noise-free gauge reading for poses p (m, n_p): scale·d + quad·d² + drift·time, shape (m,)."""
-    d = (np.atleast_2d(p) - model.p_zero) @ model.w_true  # eq. 13 relative to the zero state
-    out = model.scale * d + model.quad_per_um * d * d
-    if time_s is not None and model.drift_um_per_s != 0.0:
-        out = out + model.drift_um_per_s * np.asarray(time_s, dtype=float)
-    return out
+    """Noise-free gauge reading for poses p (m, n_p) through ``model.sensor``, shape (m,)."""
+    return model.sensor.forward(tool_displacement(model, p), time_s)
 
 
 def mean_reading(
@@ -385,7 +454,7 @@ def mean_reading(
     model = contact_model(stage, effects)
     q = np.atleast_2d(np.asarray(q_cmd, dtype=float))
     if direction is None:
-        direction = 1.0 if q_prev is None else directions_from_steps(q - np.atleast_2d(q_prev))
+        direction = ZERO_STATE_DIRECTION if q_prev is None else directions_from_steps(q - np.atleast_2d(q_prev))
     p, _ = solve_equilibrium(model, ball_heights(model, actual_positions(model, q, direction)))
     return sensor_reading(model, p, time_s)
 
@@ -393,7 +462,7 @@ def mean_reading(
 def tool_sensitivity(model: ContactModel, p: np.ndarray, active: np.ndarray) -> np.ndarray:
     """Linearised reading change per µm of actual actuator displacement, shape (m, n_q).
 
-    dreading/dq = (scale + 2 quad d) · w_true^T (K_h + k_c A_S^T A_S)^-1 k_c A_S^T (n·d·gain),
+    dreading/dq = sensor'(d) · w_true^T (K_h + k_c A_S^T A_S)^-1 k_c A_S^T (n·d·gain),
     from the equilibrium of the contact set S (balls out of contact contribute 0).
     """
     p = np.atleast_2d(p)
@@ -403,5 +472,25 @@ def tool_sensitivity(model: ContactModel, p: np.ndarray, active: np.ndarray) -> 
     H[:, idx, idx] += model.k_h
     v = np.linalg.solve(H, np.broadcast_to(model.w_true, p.shape)[..., None])[..., 0]  # H^-1 w (H symmetric)
     dp = model.k_c * S * (v @ model.A.T)  # (m, n_c): w^T H^-1 k_c a_i for active i
-    d = (p - model.p_zero) @ model.w_true
-    return (model.scale + 2.0 * model.quad_per_um * d)[:, None] * dp * model.nd * model.gain
+    return model.sensor.derivative(tool_displacement(model, p))[:, None] * dp * model.nd * model.gain
+
+
+def reading_variance(sensitivity: np.ndarray, dq: np.ndarray, friction_std_per_um: np.ndarray,
+                     actuator_std_um: float, gauge_std_um: float) -> np.ndarray:
+    """Variance of a reading from actuator and gauge noise, first order, µm², shape (m,).
+
+    v = Σ_i J_i² (σ_a² + (s_i |Δq_i|)²) + σ_g²: driver accuracy σ_a and stick-slip s_i |Δq_i|
+    per actuator, propagated through the contact sensitivity J (:func:`tool_sensitivity`),
+    plus the gauge noise σ_g.
+
+    Parameters
+    ----------
+    sensitivity : ndarray, shape (m, n_q)
+    dq : ndarray, shape (m, n_q)
+        Actuator steps of the moves, µm.
+    friction_std_per_um : ndarray, shape (n_q,)
+    actuator_std_um, gauge_std_um : float
+    """
+    J = np.atleast_2d(sensitivity)
+    var_q = actuator_std_um**2 + (np.asarray(friction_std_per_um) * np.abs(np.atleast_2d(dq))) ** 2
+    return np.sum(J * J * var_q, axis=1) + gauge_std_um**2

@@ -81,7 +81,7 @@ def test_gain_changes_the_z_coefficient_offsets_do_not(cfg):
 
 def test_merge_effects_replaces_same_cause_and_actuator():
     base = Effects(actuator_gain=(ActuatorGain(1, 1.1), ActuatorGain(3, 0.9)))
-    spec = CauseSpec("actuator_gain", 3, ("gain",), (1.0,), (0.2,), (5.0,))
+    spec = CauseSpec(ActuatorGain, 3, (0.2,), (5.0,))
     out = merge_effects(base, [(spec, [0.95])])
     assert out.actuator_gain == (ActuatorGain(1, 1.1), ActuatorGain(3, 0.95))
     assert spec.start_from(base) == (0.9,)
@@ -128,6 +128,9 @@ def test_structure_f_test_has_its_nominal_size(cfg):
     rng = np.random.default_rng(4)
     p = np.array([structure_f_test(rng.standard_normal(data.n), data).p_value for _ in range(200)])
     assert 0.0 <= np.mean(p < 0.05) <= 0.1
+    # intercept, cubic in u, directions, time; directions × (u, u²) and time², time³ when n >= 3 p
+    big = simulate(cfg, Effects(), 200, seed=3)
+    assert generic_basis(big).shape == (200, 1 + 19 + 4 + 1 + 4 * 9 + 2)
     assert generic_basis(data).shape == (150, 1 + 19 + 4 + 1)
 
 

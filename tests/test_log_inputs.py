@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import errno
 import os
 from pathlib import Path
@@ -124,17 +126,27 @@ def test_non_utf8_and_nul_bytes(good_log, tmp_path):
         read_log(p, CFG.stage)
 
 
-@pytest.mark.parametrize("command", ["train", "diagnose"])
-def test_cli_huge_t_is_one_line_exit_2(good_log, tmp_path, capsys, command):
+def test_cli_huge_t_is_one_line_exit_2(good_log, tmp_path, capsys):
     bad = _edit(good_log, tmp_path / "huge.csv", 5, "t", "1e300")
-    out = tmp_path / ("m.npz" if command == "train" else "diag")
-    argv = [command, str(bad), "--config", str(STAGE_YAML)]
-    argv += ["-o", str(out)] if command == "train" else ["--out", str(out), "--quiet"]
-    assert main(argv) == 2
+    out = tmp_path / "m.npz"
+    assert main(["train", str(bad), "--config", str(STAGE_YAML), "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err
     assert "huge.csv: row 5, column 't': 1e+300 µm is implausible" in err
     assert not out.exists()
+
+
+def test_diagnose_sets_an_implausible_row_aside_as_an_outlier(tmp_path, capsys):
+    """diagnose reads what train refuses: a corrupt cell is an outlier to name by row (issue 11),
+    with a one-line note naming the file, row and column, and the run completes."""
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(STAGE_YAML), "-n", "60", "--seed", "1", "-o", str(log), "--quiet"]) == 0
+    bad = _edit(log, tmp_path / "huge.csv", 20, "t", "1e300")
+    assert main(["diagnose", str(bad), "--config", str(STAGE_YAML), "--out", str(tmp_path / "diag"), "--no-gp"]) == 0
+    err = capsys.readouterr().err
+    assert "huge.csv: row 20, t: 1e+300 µm is implausible" in err and "set aside as an outlier" in err
+    report = json.loads((tmp_path / "diag" / "report.json").read_text())
+    assert [r["line"] for r in report["outliers"]["rows"]] == [20]
 
 
 # ---- the writer on a full disk ---------------------------------------------------------------

@@ -1,14 +1,16 @@
-"""The simulated stage: the contact physics of :mod:`microctl.physics` with noise.
+"""The simulated stage: the stage model (:class:`~microctl.extended.ExtendedForwardModel`) with noise.
 
-One move, in order:
+One model object is the truth of the moves *and* of the oracle (``true_mean``, ``true_var``),
+and the model the diagnosis fits (with candidate causes instead of the planted ones). One
+move, in order:
 
 1. q = K u (eq. 12, CAD geometry), refused if out of range (nothing changes);
-2. backlash direction per actuator: sign(q − q_prev), kept when Δq_i = 0 (the zero state
-   counts as approached "up");
-3. actual positions q_act = q − lag·direction + e_driver + e_friction with
+2. backlash direction per actuator by the one rule (``model.next_direction``: the sign of
+   Δq_i, kept when the actuator is held still; the zero state counts as approached "up");
+3. actual positions q_act = model.actual_positions(q, direction) + e_driver + e_friction with
    e_driver ~ N(0, driver_accuracy²) per actuator and e_friction,i ~ N(0, (std_i |Δq_i|)²);
-4. contact equilibrium p (``physics.solve_equilibrium``), the clock advances by move_time_s;
-5. reading = scale·d + quad·d² + drift·time + N(0, gauge_noise²), d = w_true·(p − p_zero).
+4. contact equilibrium p (``model.pose``), the clock advances by move_time_s;
+5. reading = model.reading(p, time) + N(0, gauge_noise²) (the sensor of the effects).
 
 Actuator noise and gauge noise come from two independent streams spawned from the seed
 (``SeedSequence(seed).spawn(2)``): per move exactly 2·n_q actuator normals (driver first,
@@ -24,13 +26,7 @@ from microctl.backends.base import Measurement, StageBackend
 from microctl.config import StageConfig
 from microctl.errors import BackendError
 from microctl.extended import ExtendedForwardModel, ExtendedPrediction
-from microctl.physics import (
-    actual_positions,
-    ball_heights,
-    directions_from_steps,
-    sensor_reading,
-    solve_equilibrium,
-)
+from microctl.physics import ZERO_STATE_DIRECTION
 
 
 class SimulatedStage(StageBackend):
@@ -44,8 +40,12 @@ class SimulatedStage(StageBackend):
 
     Attributes
     ----------
+    truth : ExtendedForwardModel
+        The stage model with the true effects (moves and oracle).
     model : ContactModel
-        The physics with the true effects.
+        Its physics arrays (``truth.model``).
+    direction : ndarray, shape (n_q,)
+        Direction each actuator last moved (backlash state).
     time_s : float
         Simulated clock, s.
     """
@@ -59,11 +59,11 @@ class SimulatedStage(StageBackend):
         self._rng_act = np.random.default_rng(act_seq)
         self._rng_gauge = np.random.default_rng(gauge_seq)
         # the noise-free truth: the stage with the simulated effects through the physics
-        self._truth = ExtendedForwardModel(config.stage, sim.effects)
-        self.model = self._truth.model
+        self.truth = ExtendedForwardModel(config.stage, sim.effects)
+        self.model = self.truth.model
         n = config.stage.n_act
         self._q_cmd = np.zeros(n)
-        self._direction = np.ones(n)  # the zero state is approached "up"
+        self.direction = np.full(n, ZERO_STATE_DIRECTION)
         self._p = self.model.p_zero.copy()
         self.time_s = 0.0
         self.moves = 0
@@ -76,13 +76,13 @@ class SimulatedStage(StageBackend):
         """
         q = np.array(q_cmd, dtype=float).reshape(-1)  # a copy: the caller may reuse its array
         dq = q - self._q_cmd
-        self._direction = directions_from_steps(dq[None, :], self._direction)[0]
+        self.direction = self.truth.next_direction(dq, self.direction)
         z_driver = self._rng_act.standard_normal(q.size)
         z_friction = self._rng_act.standard_normal(q.size)
-        q_act = actual_positions(self.model, q, self._direction)[0]
+        q_act = self.truth.actual_positions(q, self.direction)[0]
         q_act = q_act + self.settings.driver_accuracy_um * z_driver
         q_act = q_act + self.model.friction_std_per_um * np.abs(dq) * z_friction
-        p, _ = solve_equilibrium(self.model, ball_heights(self.model, q_act[None, :]))
+        p, _ = self.truth.pose(q_act[None, :])
         self._p = p[0]
         self._q_cmd = q
         self.time_s += self.settings.move_time_s
@@ -92,7 +92,7 @@ class SimulatedStage(StageBackend):
         """Gauge reading of the current pose now (one gauge-noise draw), µm."""
         if self._closed:
             raise BackendError("the backend is closed")
-        mean = sensor_reading(self.model, self._p[None, :], self.time_s)[0]
+        mean = self.truth.reading(self._p[None, :], self.time_s)[0]
         return float(mean + self.settings.gauge_noise_std_um * self._rng_gauge.standard_normal())
 
     def move(self, u: np.ndarray) -> Measurement:
@@ -105,14 +105,13 @@ class SimulatedStage(StageBackend):
 
     # ---- oracle --------------------------------------------------------------------
     def _oracle(self, s: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ExtendedPrediction]:
-        """Δq and the noise-free prediction of the next move from state s (Δq_i = 0 keeps the
-        stage's current backlash direction), at the time it would settle."""
+        """Δq and the noise-free prediction of the next move from state s (a held actuator keeps
+        the stage's current backlash direction), at the time it would settle."""
         s = np.asarray(s, dtype=float).reshape(-1)
         q = np.atleast_2d(np.asarray(u, dtype=float)) @ self.K.T
-        dq = q - s[1:]
-        direction = np.where(dq > 0, 1.0, np.where(dq < 0, -1.0, self._direction))
-        pred = self._truth.predict_q(q, direction=direction, time_s=self.time_s + self.settings.move_time_s)
-        return dq, pred
+        pred = self.truth.predict_q(q, q_prev=s[1:], last_direction=self.direction,
+                                    time_s=self.time_s + self.settings.move_time_s)
+        return q - s[1:], pred
 
     def true_mean(self, s: np.ndarray, u: np.ndarray) -> np.ndarray | float:
         """Noise-free expected reading of the next move from state s.
@@ -136,10 +135,9 @@ class SimulatedStage(StageBackend):
         """Variance of the next reading from state s (µm²), shape () or (m,).
 
         Driver accuracy and friction (std_i |Δq_i|) propagated linearly through the contact
-        equilibrium (:func:`microctl.physics.tool_sensitivity`), plus the gauge noise.
+        equilibrium (``truth.variance``), plus the gauge noise.
         """
         dq, pred = self._oracle(s, u)
-        J = pred.sensitivity
-        var_q = self.settings.driver_accuracy_um**2 + (self.model.friction_std_per_um * np.abs(dq)) ** 2
-        out = np.sum(J * J * var_q, axis=1) + self.settings.gauge_noise_std_um**2
+        out = self.truth.variance(pred, dq, actuator_std_um=self.settings.driver_accuracy_um,
+                                  gauge_std_um=self.settings.gauge_noise_std_um)
         return float(out[0]) if np.ndim(u) == 1 else out

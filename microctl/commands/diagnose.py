@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from microctl.commands._common import add_quiet, add_seed, check_output_dir
 from microctl.config import load_stage_config
 
@@ -36,7 +38,15 @@ def _run(args: argparse.Namespace) -> int:
     from microctl.progress import Progress
 
     cfg = load_stage_config(args.config)
-    data = data_from_log(read_log(args.log, cfg.stage), cfg.stage)
+    # rows no stage can have produced (a corrupt cell) are outliers to name, not a reason to stop
+    log = read_log(args.log, cfg.stage, plausibility="report")
+    data = data_from_log(log, cfg.stage)
+    set_aside = np.zeros(len(log), dtype=bool)
+    set_aside[[r.row for r in log.implausible]] = True
+    if log.implausible and not args.quiet:
+        for r in log.implausible:
+            print(f"diagnose: note: {args.log}: row {r.row + 2}, {r.column}: {r.message}; set aside as an outlier",
+                  file=sys.stderr)
     holdout = None
     if args.holdout:
         holdout = data_from_log(read_log(args.holdout, cfg.stage), cfg.stage)
@@ -45,16 +55,12 @@ def _run(args: argparse.Namespace) -> int:
                                               "the held-out log --holdout": args.holdout}, OUTPUTS)
     with Progress(2 * 20 + 5, "diagnose (fits)", quiet=args.quiet) as prog:
         diag = run_diagnosis(cfg, data, holdout=holdout, seed=args.seed, gp=not args.no_gp,
-                             progress=lambda info: prog.step(1, info))
+                             progress=lambda info: prog.step(1, info), set_aside=set_aside)
     report = write_outputs(diag, out)
     if not args.quiet:
-        d = report["discrepancy"]
-        acc = report["accepted"]
-        print(f"rows {report['rows']}  AFM RMSE {d['afm_rmse_um']:.4g} µm  noise {d['noise_std_um']:.3g} µm  "
-              f"significant {'yes' if d['significant'] else 'no'} (p = {d['p_value']:.3g})")
-        print(f"accepted mean causes: {', '.join(acc['mean']) or 'none'};  noise: {', '.join(acc['noise'])}")
-        if "gain" in report:
-            g = report["gain"]["rmse_um"]
-            print("held-out RMSE (µm): " + "  ".join(f"{k} {v:.4g}" for k, v in g.items()))
+        from microctl.diagnosis.report import summary_lines
+
+        for line in summary_lines(report):
+            print(line)
         print(f"wrote {out / 'report.json'}, {out / 'report.md'}, {out / 'extended.yaml'}", file=sys.stdout)
     return 0

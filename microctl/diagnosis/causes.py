@@ -1,26 +1,23 @@
-"""Mean causes of the vocabulary as physical changes of the stage model, fitted by NLS.
+"""Mean causes of the registry fitted as physical changes of the stage model, by NLS.
 
-Each cause (shared/spec/diagnosis.md) is a change of the elastic contact model of
-:mod:`microctl.physics`, never a curve fitted to the AFM residual:
+Every mean cause of :data:`microctl.causes.REGISTRY` (kinds ``static`` and ``dynamic``) is a
+candidate, per actuator for per-actuator causes: a :class:`CauseSpec` wraps the registry class
+with the actuator, its search bounds for the stage and its starting grid. A set of causes with
+parameters θ gives a prediction t̂(θ) by the stage model
+(:class:`~microctl.extended.ExtendedForwardModel`, the simulator's own model object): a cause is
+never a curve fitted to the AFM residual. θ is fitted by nonlinear least squares
+(``scipy.optimize.least_squares``, trust-region reflective, bounds), optionally weighted by
+1/std of a fitted noise model.
 
-============================  ===========================================================
-``actuator_gain[i]``          ball i rises gain·(n·d)·q_i (the actuator moves gain × command)
-``contact_offset[i]``         contact point c_i moved by (dx, dy) mm: new height row a_i (eq. 6, 9)
-``tool_offset``               tool point t0 moved by (dx, dy) mm: new w (eq. 13)
-``sensor_scale``              reading = scale · d
-``sensor_nonlinearity``       reading = d + quad · d²
-``contact_loss[i]``           ball i lowered by gap µm: one-sided contact may open (a kink)
-``backlash[i]``               q_act,i = q_i − lag · direction_i
-``drift``                     reading += rate · time
-============================  ===========================================================
+Nuisances: a cause may declare stage-physics numbers its prediction depends on that the config
+may have wrong (:attr:`microctl.causes.Cause.nuisance`; ``contact_loss``: the preload compression,
+because where a lowered ball unloads depends on the gap relative to it). They are fitted with the
+cause, shared by every cause that declares them, counted as parameters, and reported apart.
 
-A set of causes with parameters θ gives a prediction t̂(θ) by
-:class:`~microctl.extended.ExtendedForwardModel`; θ is fitted by nonlinear least squares
-(``scipy.optimize.least_squares``, trust-region reflective, bounds from the config's
-validity rules), optionally weighted by 1/std of a fitted noise model. Standard errors are
-from the Jacobian at the optimum: Cov θ = σ̂² (JᵀJ)⁻¹, σ̂² = RSS/(n − k); a Fisher matrix
-JᵀJ whose smallest singular value is below 1e-10 of the largest is rank deficient (the
-parameters are not identifiable from this data) and gets infinite standard errors.
+Standard errors are from the Jacobian at the optimum: Cov θ = σ̂² (JᵀJ)⁻¹, σ̂² = RSS/(n − k);
+a Fisher matrix JᵀJ whose smallest singular value is below 1e-10 of the largest is rank
+deficient (the parameters are not identifiable from this data) and gets infinite standard
+errors for the parameters in its null space.
 """
 
 from __future__ import annotations
@@ -31,44 +28,18 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from microctl.config import (
-    ActuatorGain,
-    Backlash,
-    ContactLoss,
-    ContactOffset,
-    Drift,
-    Effects,
-    SensorNonlinearity,
-    SensorScale,
-    Stage,
-    ToolOffset,
-)
+from microctl.causes import MEAN_KINDS, REGISTRY, Cause, Nuisance, nuisances
+from microctl.config import Effects, Stage
 from microctl.diagnosis.data import DiagnosisData
 from microctl.errors import SolveError
 from microctl.extended import ExtendedForwardModel
 
-#: Mean causes in vocabulary order (report names).
-MEAN_CAUSES = (
-    "actuator_gain",
-    "contact_offset",
-    "tool_offset",
-    "sensor_scale",
-    "sensor_nonlinearity",
-    "contact_loss",
-    "backlash",
-    "drift",
-)
+#: Mean causes in vocabulary order (report names), from the registry.
+MEAN_CAUSES = tuple(n for n, c in REGISTRY.items() if c.kind in MEAN_KINDS)
 
-#: Grid of starting gaps for ``contact_loss``, as offsets (µm) from the stage's preload
-#: compression (preload / contact stiffness, 5 µm with the default physics): below it a
-#: lowered ball still carries load and the prediction hardly depends on the gap (zero
-#: gradient), so the fit starts from the best grid point instead of from 0.
-GAP_GRID_OFFSETS_UM = (-3.0, -1.0, 0.0, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 21.0, 28.0)
-
-
-def preload_compression_um(stage: Stage) -> float:
-    """Total contact compression the preload makes up, µm (preload / contact stiffness)."""
-    return stage.physics.preload_n / stage.physics.contact_stiffness_n_per_um
+#: Relative tolerances of the least-squares fits (parameters to ~1e-8 of their scale: far below
+#: any standard error).
+FIT_TOL = 1e-8
 
 #: Smallest singular value ratio of JᵀJ treated as full rank.
 RANK_TOL = 1e-10
@@ -76,28 +47,51 @@ RANK_TOL = 1e-10
 
 @dataclass(frozen=True)
 class CauseSpec:
-    """One candidate mean cause (a vocabulary entry, for one actuator if per-actuator).
+    """One candidate mean cause: a registry class on one actuator (if per-actuator), for a stage.
 
     Attributes
     ----------
-    cause : str
-        Vocabulary name, e.g. ``"actuator_gain"``.
+    cls : type of Cause
+        The registry class.
     actuator : int or None
         1-based actuator for per-actuator causes.
-    params : tuple of str
-        Names of the fitted parameters (report names).
-    x0 : tuple of float
-        Default starting values (the healthy stage).
     lower, upper : tuple of float
-        Bounds of the parameters.
+        Search bounds of the parameters for this stage.
+    grid : tuple of tuple of float
+        Starting points (parameters then nuisances) tried when the fit is not warm-started.
     """
 
-    cause: str
+    cls: type[Cause]
     actuator: int | None
-    params: tuple[str, ...]
-    x0: tuple[float, ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
+    grid: tuple[tuple[float, ...], ...] = ()
+
+    @classmethod
+    def of(cls, cause: type[Cause], stage: Stage, actuator: int | None = None) -> "CauseSpec":
+        """The candidate ``cause`` (on ``actuator``) for ``stage``."""
+        lo, hi = cause.fit_bounds(stage)
+        return cls(cause, actuator, tuple(lo), tuple(hi), tuple(cause.start_grid(stage)))
+
+    @property
+    def cause(self) -> str:
+        """Vocabulary name."""
+        return self.cls.name
+
+    @property
+    def params(self) -> tuple[str, ...]:
+        """Names of the fitted parameters (report names)."""
+        return tuple(p.name for p in self.cls.params)
+
+    @property
+    def x0(self) -> tuple[float, ...]:
+        """Parameters of a healthy stage (the default start)."""
+        return self.cls.healthy()
+
+    @property
+    def nuisance(self) -> tuple[Nuisance, ...]:
+        """Stage-physics nuisances fitted with this cause."""
+        return self.cls.nuisance
 
     @property
     def key(self) -> str:
@@ -106,88 +100,79 @@ class CauseSpec:
 
     @property
     def k(self) -> int:
-        """Number of parameters."""
-        return len(self.params)
+        """Number of parameters (nuisances not counted)."""
+        return len(self.cls.params)
 
-    def effect(self, theta: Sequence[float]):
-        """The config cause dataclass (:mod:`microctl.config`) for parameters ``theta``."""
-        v = [float(x) for x in theta]
-        a = self.actuator
-        return {
-            "actuator_gain": lambda: ActuatorGain(a, v[0]),
-            "contact_offset": lambda: ContactOffset(a, v[0], v[1]),
-            "tool_offset": lambda: ToolOffset(v[0], v[1]),
-            "sensor_scale": lambda: SensorScale(v[0]),
-            "sensor_nonlinearity": lambda: SensorNonlinearity(v[0]),
-            "contact_loss": lambda: ContactLoss(a, max(v[0], 0.0)),
-            "backlash": lambda: Backlash(a, max(v[0], 0.0)),
-            "drift": lambda: Drift(v[0]),
-        }[self.cause]()
+    def effect(self, theta: Sequence[float]) -> Cause:
+        """The registry entry for parameters ``theta``."""
+        return self.cls.make(self.actuator, theta)
 
     def params_dict(self, theta: Sequence[float]) -> dict:
         """Report form: ``{"actuator": i, name: value, ...}``."""
-        out: dict = {} if self.actuator is None else {"actuator": self.actuator}
-        out.update({n: float(x) for n, x in zip(self.params, theta)})
-        return out
+        return self.effect(theta).report_params()
 
     def start_from(self, base: Effects) -> tuple[float, ...]:
         """Starting values: the value already in ``base`` (a previous correction) or :attr:`x0`."""
-        existing = getattr(base, self.cause)
-        if isinstance(existing, tuple):
-            existing = next((e for e in existing if e.actuator == self.actuator), None)
-        if existing is None:
-            return self.x0
-        return tuple(float(getattr(existing, p)) for p in self.params)
+        existing = next((e for e in base.items(MEAN_KINDS) if e.name == self.cause
+                         and (self.actuator is None or e.actuator == self.actuator)), None)
+        return self.x0 if existing is None else existing.theta()
 
 
-def candidate_specs(stage: Stage, has_time: bool = True) -> list[CauseSpec]:
-    """Every mean cause of the vocabulary, per-actuator ones once per actuator.
+def candidate_specs(stage: Stage, has: Sequence[str] = ("time_s",)) -> list[CauseSpec]:
+    """Every mean cause of the registry, per-actuator ones once per actuator.
 
     Parameters
     ----------
     stage : Stage
-    has_time : bool
-        Whether the data has ``time_s`` (``drift`` needs it).
+    has : sequence of str
+        Optional data the log has (``"time_s"``); a cause that needs missing data is left out.
 
     Returns
     -------
     list of CauseSpec
-        Bounds: gains and scale in [0.2, 5] (the config requires > 0), offsets within
-        ±20 mm, quad within ±0.1 /µm, gap in [0, c + 35] µm with c the preload compression
-        (:func:`preload_compression_um`), lag in [0, 5] µm, drift ±1 µm/s.
+        In vocabulary order, with each cause's search bounds for ``stage``
+        (:meth:`microctl.causes.Cause.fit_bounds`).
     """
-    acts = range(1, stage.n_act + 1)
-    c = preload_compression_um(stage)
+    if isinstance(has, bool):  # the former has_time flag
+        has = ("time_s",) if has else ()
     out: list[CauseSpec] = []
-    out += [CauseSpec("actuator_gain", i, ("gain",), (1.0,), (0.2,), (5.0,)) for i in acts]
-    out += [CauseSpec("contact_offset", i, ("dx_mm", "dy_mm"), (0.0, 0.0), (-20.0, -20.0), (20.0, 20.0)) for i in acts]
-    out.append(CauseSpec("tool_offset", None, ("dx_mm", "dy_mm"), (0.0, 0.0), (-20.0, -20.0), (20.0, 20.0)))
-    out.append(CauseSpec("sensor_scale", None, ("scale",), (1.0,), (0.2,), (5.0,)))
-    out.append(CauseSpec("sensor_nonlinearity", None, ("quad_per_um",), (0.0,), (-0.1,), (0.1,)))
-    out += [CauseSpec("contact_loss", i, ("gap_um",), (c,), (0.0,), (c + 35.0,)) for i in acts]
-    out += [CauseSpec("backlash", i, ("lag_um",), (0.05,), (0.0,), (5.0,)) for i in acts]
-    if has_time:
-        out.append(CauseSpec("drift", None, ("rate_um_per_s",), (0.0,), (-1.0,), (1.0,)))
+    for c in REGISTRY.values():
+        if c.kind not in MEAN_KINDS or any(need not in has for need in c.needs):
+            continue
+        acts = range(1, stage.n_act + 1) if c.per_actuator else [None]
+        out += [CauseSpec.of(c, stage, a) for a in acts]
     return out
 
 
 def merge_effects(base: Effects, items: Sequence[tuple[CauseSpec, Sequence[float]]]) -> Effects:
     """``base`` with the causes ``items`` added (replacing the same cause/actuator)."""
-    kw = {name: getattr(base, name) for name in Effects.__dataclass_fields__}
-    for spec, theta in items:
-        eff = spec.effect(theta)
-        cur = kw[spec.cause]
-        if spec.actuator is None:
-            kw[spec.cause] = eff
-        else:
-            kept = [c for c in cur if c.actuator != spec.actuator]
-            kw[spec.cause] = tuple(sorted([*kept, eff], key=lambda c: c.actuator))
-    return Effects(**kw)
+    return base.with_(*(spec.effect(theta) for spec, theta in items))
+
+
+def _nuisances(specs: Sequence[CauseSpec]) -> tuple[Nuisance, ...]:
+    out: list[Nuisance] = []
+    for s in specs:
+        out += [n for n in s.nuisance if n not in out]
+    return tuple(out)
+
+
+def with_nuisance(stage: Stage, values: dict[str, float]) -> Stage:
+    """``stage`` with fitted nuisance values (name -> value) applied."""
+    for nu in nuisances():
+        if nu.name in values:
+            stage = nu.apply(stage, values[nu.name])
+    return stage
 
 
 def predict(stage: Stage, effects: Effects, data: DiagnosisData) -> np.ndarray:
     """Expected readings of the moves in ``data`` under ``effects``, shape (n,)."""
     return ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s).t
+
+
+def lifts_a_ball(stage: Stage, effects: Effects, data: DiagnosisData) -> bool:
+    """Whether a ball is out of contact at some move of ``data`` under ``effects``."""
+    pred = ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    return not bool(pred.active.all())
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,7 +183,7 @@ class MeanFit:
     ----------
     specs : tuple of CauseSpec
     theta : ndarray, shape (k,)
-        Parameters, concatenated in ``specs`` order.
+        Parameters, concatenated in ``specs`` order (nuisances not included).
     stderr : ndarray, shape (k,)
         Standard errors (inf where not identifiable).
     rss : float
@@ -206,7 +191,7 @@ class MeanFit:
     n : int
         Number of moves.
     pred : ndarray, shape (n,)
-        Predicted readings, µm.
+        Predicted readings, µm (gauge zero included).
     effects : Effects
         ``base`` with the fitted causes.
     rank_deficient : bool
@@ -215,6 +200,15 @@ class MeanFit:
         Fitted gauge-zero offset (a nuisance of the data, see :func:`fit_mean`) and its error.
     zero_fitted : bool
         Whether the gauge zero was fitted.
+    nuisance, nuisance_se : dict of str -> float
+        Fitted stage-physics nuisances and their standard errors.
+    stage : Stage or None
+        The stage with the fitted nuisances (the model the prediction used).
+    jac : ndarray, shape (n, k + len(nuisance)) or None
+        Unweighted Jacobian of the prediction at the optimum (parameters then nuisances).
+    unphysical : bool
+        The fitted causes lift a ball off somewhere though none of them may
+        (:attr:`microctl.causes.Cause.lifts_balls`): not the causes they claim to be.
     """
 
     specs: tuple[CauseSpec, ...]
@@ -229,11 +223,16 @@ class MeanFit:
     zero_um: float = 0.0
     zero_se_um: float = 0.0
     zero_fitted: bool = False
+    nuisance: dict = field(default_factory=dict)
+    nuisance_se: dict = field(default_factory=dict)
+    stage: Stage | None = None
+    jac: np.ndarray | None = None
+    unphysical: bool = False
 
     @property
     def k(self) -> int:
-        """Number of fitted parameters (the gauge zero included when fitted)."""
-        return int(self.theta.size) + int(self.zero_fitted)
+        """Number of fitted parameters (nuisances and the gauge zero included when fitted)."""
+        return int(self.theta.size) + len(self.nuisance) + int(self.zero_fitted)
 
     @property
     def sigma2(self) -> float:
@@ -257,6 +256,10 @@ class MeanFit:
             out.append((s, self.theta[j:j + s.k], self.stderr[j:j + s.k]))
             j += s.k
         return out
+
+    def model(self) -> ExtendedForwardModel:
+        """The fitted stage model (causes and nuisances)."""
+        return ExtendedForwardModel(self.stage, self.effects)
 
 
 def _stderr(jac: np.ndarray, sigma2: float) -> tuple[np.ndarray, bool]:
@@ -287,6 +290,7 @@ def fit_mean(
     data: DiagnosisData,
     *,
     theta0: Sequence[float] | None = None,
+    nuisance0: dict | None = None,
     weights: np.ndarray | None = None,
     zero: bool = True,
 ) -> MeanFit:
@@ -301,8 +305,12 @@ def fit_mean(
         Causes whose parameters are fitted jointly (may be empty: the base model).
     data : DiagnosisData
     theta0 : sequence of float, optional
-        Starting parameters, concatenated (default each spec's start; ``contact_loss``
-        without a given start is started from the best point of :data:`GAP_GRID_OFFSETS_UM`).
+        Starting parameters, concatenated (default each spec's :meth:`CauseSpec.start_from`).
+        A spec whose start is its healthy value and that has a starting grid
+        (``contact_loss``: gaps relative to the preload compression, and compressions) is
+        started from the best grid point instead.
+    nuisance0 : dict, optional
+        Starting nuisance values (default the config's).
     weights : ndarray, shape (n,), optional
         1/std of each reading (feasible weighted least squares); default 1.
     zero : bool
@@ -318,20 +326,26 @@ def fit_mean(
     """
     specs = tuple(specs)
     w = np.ones(data.n) if weights is None else np.asarray(weights, dtype=float)
-    sizes = [s.k for s in specs]
-    cuts = np.cumsum([0, *sizes])
-
-    def effects_of(theta: np.ndarray) -> Effects:
-        return merge_effects(base, [(s, theta[cuts[j]:cuts[j + 1]]) for j, s in enumerate(specs)])
-
     w2 = w * w
+    cuts = np.cumsum([0, *[s.k for s in specs]])
+    nuis = _nuisances(specs)
+    k_par = int(cuts[-1])
 
     def zero_of(pred: np.ndarray) -> float:
         return float(w2 @ (data.t - pred) / w2.sum()) if zero else 0.0
 
-    def resid(theta: np.ndarray) -> np.ndarray:
+    def split_x(x: np.ndarray) -> tuple[Effects, Stage, dict]:
+        eff = merge_effects(base, [(s, x[cuts[j]:cuts[j + 1]]) for j, s in enumerate(specs)])
+        nv = {nu.name: float(x[k_par + j]) for j, nu in enumerate(nuis)}
+        return eff, with_nuisance(stage, nv), nv
+
+    def pred_of(x: np.ndarray) -> np.ndarray:
+        eff, st, _ = split_x(x)
+        return predict(st, eff, data)
+
+    def resid(x: np.ndarray) -> np.ndarray:
         try:
-            pred = predict(stage, effects_of(theta), data)
+            pred = pred_of(x)
         except SolveError:  # pragma: no cover - a pathological parameter: make it unattractive
             return w * np.full(data.n, 1e3)
         return w * (pred + zero_of(pred) - data.t)
@@ -345,34 +359,42 @@ def fit_mean(
         r = w * (pred + z - data.t)
         rss = float(r @ r)
         return MeanFit((), np.zeros(0), np.zeros(0), rss, data.n, pred + z, base, zero_um=z,
-                       zero_se_um=zero_se(rss, int(zero)), zero_fitted=zero)
+                       zero_se_um=zero_se(rss, int(zero)), zero_fitted=zero, stage=stage,
+                       jac=np.zeros((data.n, 0)))
 
-    lo = np.concatenate([s.lower for s in specs])
-    hi = np.concatenate([s.upper for s in specs])
-    if theta0 is None:
-        x0 = np.concatenate([s.start_from(base) for s in specs]).astype(float)
-    else:
-        x0 = np.asarray(theta0, dtype=float).copy()
-    # contact_loss not warm-started: start from the best gap of a coarse grid
-    grid_specs = [j for j, s in enumerate(specs) if s.cause == "contact_loss" and x0[cuts[j]] == s.x0[0]]
-    for j in grid_specs:  # coarse grid for the gap (zero gradient below the preload compression)
-        best, best_rss = x0[cuts[j]], np.inf
-        for g in GAP_GRID_OFFSETS_UM:
-            x0[cuts[j]] = max(0.0, preload_compression_um(stage) + g)
-            r = resid(x0)
+    lo = np.concatenate([np.concatenate([s.lower for s in specs]), [nu.lo for nu in nuis]])
+    hi = np.concatenate([np.concatenate([s.upper for s in specs]), [nu.hi for nu in nuis]])
+    starts = np.concatenate([s.start_from(base) for s in specs]).astype(float)
+    x_par = starts if theta0 is None else np.asarray(theta0, dtype=float).copy()
+    nu0 = {nu.name: nu.value(stage) for nu in nuis}
+    nu0.update({k: v for k, v in (nuisance0 or {}).items() if k in nu0})
+    x0 = np.concatenate([x_par, [nu0[nu.name] for nu in nuis]])
+    # specs started at their healthy value with a starting grid: start from the best grid point
+    for j, s in enumerate(specs):
+        if len(s.grid) <= 1 or not np.allclose(x0[cuts[j]:cuts[j + 1]], s.x0):
+            continue
+        slots = list(range(cuts[j], cuts[j + 1])) + [k_par + nuis.index(nu) for nu in s.nuisance]
+        best, best_rss = x0[slots].copy(), np.inf
+        for g in s.grid:
+            x0[slots] = g
+            r = resid(np.clip(x0, lo, hi))
             if r @ r < best_rss:
-                best, best_rss = g, float(r @ r)
-        x0[cuts[j]] = best
+                best, best_rss = np.array(g, dtype=float), float(r @ r)
+        x0[slots] = best
     x0 = np.clip(x0, lo, hi)
-    res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=1e-10, ftol=1e-10,
-                        gtol=1e-10, max_nfev=200 * len(x0))
-    theta = res.x
+    res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=FIT_TOL, ftol=FIT_TOL,
+                        gtol=FIT_TOL, max_nfev=200 * len(x0))
+    x = res.x
     r = res.fun
     rss = float(r @ r)
-    k = theta.size + int(zero)
+    k = x.size + int(zero)
     sigma2 = rss / max(data.n - k, 1)
     se, deficient = _stderr(res.jac, sigma2)
-    eff = effects_of(theta)
-    pred = predict(stage, eff, data)
+    eff, st, nv = split_x(x)
+    pred = predict(st, eff, data)
     z = zero_of(pred)
-    return MeanFit(specs, theta, se, rss, data.n, pred + z, eff, deficient, res.message, z, zero_se(rss, k), zero)
+    jac = res.jac / np.where(w > 0, w, 1.0)[:, None]
+    unphysical = (not any(s.cls.lifts_balls for s in specs)) and lifts_a_ball(st, eff, data)
+    return MeanFit(specs, x[:k_par], se[:k_par], rss, data.n, pred + z, eff, deficient, res.message, z,
+                   zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st, jac,
+                   unphysical)

@@ -45,6 +45,10 @@ class DiagnosisData:
         Direction (±1) each actuator last moved, for backlash.
     source : str
         Where the data came from (for messages).
+    seq : ndarray of int, shape (n,), optional
+        The log's ``seq`` of each row (default 0..n−1).
+    line : ndarray of int, shape (n,), optional
+        Line number of each row in the log file (header = line 1), when read from a file.
     """
 
     u: np.ndarray
@@ -55,6 +59,16 @@ class DiagnosisData:
     time_s: np.ndarray | None
     direction: np.ndarray
     source: str = "<memory>"
+    seq: np.ndarray | None = None
+    line: np.ndarray | None = None
+
+    def row_ids(self, idx: np.ndarray) -> list[dict]:
+        """``{"index", "seq", "line"}`` of rows ``idx`` (0-based indices into this data), for reports."""
+        out = []
+        for k in np.asarray(idx, dtype=int):
+            out.append({"index": int(k), "seq": int(self.seq[k]) if self.seq is not None else int(k),
+                        "line": int(self.line[k]) if self.line is not None else None})
+        return out
 
     @property
     def n(self) -> int:
@@ -87,6 +101,8 @@ class DiagnosisData:
             time_s=None if self.time_s is None else self.time_s[idx],
             direction=self.direction[idx],
             source=self.source,
+            seq=None if self.seq is None else self.seq[idx],
+            line=None if self.line is None else self.line[idx],
         )
 
     def with_t(self, t: np.ndarray) -> "DiagnosisData":
@@ -94,7 +110,8 @@ class DiagnosisData:
         t = np.asarray(t, dtype=float).reshape(-1)
         if t.shape != self.t.shape:
             raise DataError(f"{self.source}: {t.size} readings for {self.n} moves")
-        return DiagnosisData(self.u, self.q, self.q_prev, t, self.t_prev, self.time_s, self.direction, self.source)
+        return DiagnosisData(self.u, self.q, self.q_prev, t, self.t_prev, self.time_s, self.direction, self.source,
+                             self.seq, self.line)
 
 
 def data_from_arrays(
@@ -106,6 +123,8 @@ def data_from_arrays(
     t_prev: np.ndarray | None = None,
     time_s: np.ndarray | None = None,
     source: str = "<memory>",
+    seq: np.ndarray | None = None,
+    line: np.ndarray | None = None,
 ) -> DiagnosisData:
     """Build :class:`DiagnosisData` from arrays of one run in execution order.
 
@@ -118,6 +137,8 @@ def data_from_arrays(
         Previous state; default the previous row (zero state before the first).
     time_s : ndarray (n,), optional
     source : str
+    seq, line : ndarray (n,), optional
+        The log's ``seq`` and the file's line numbers of the rows (for reports).
     """
     u = np.atleast_2d(np.asarray(u, dtype=float))
     q = np.atleast_2d(np.asarray(q, dtype=float))
@@ -140,6 +161,8 @@ def data_from_arrays(
         time_s=None if time_s is None else np.asarray(time_s, dtype=float).reshape(-1),
         direction=direction,
         source=source,
+        seq=None if seq is None else np.asarray(seq, dtype=int),
+        line=None if line is None else np.asarray(line, dtype=int),
     )
 
 
@@ -161,4 +184,6 @@ def data_from_log(log: MeasurementLog, stage: Stage) -> DiagnosisData:
         t_prev=log.s_prev[:, 0],
         time_s=log.time_s,
         source=str(log.path),
+        seq=log.seq,
+        line=np.arange(len(log)) + 2,  # the reader keeps every row, in file order (header = line 1)
     )

@@ -30,7 +30,6 @@ from microctl.config import Stage
 from microctl.diagnosis.causes import CauseSpec, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.noise import fit_noise
-from microctl.extended import ExtendedForwardModel
 from microctl.stats import paired_t
 from microctl.vhgpr import VHGPR
 
@@ -77,13 +76,13 @@ def _nlpd(y: np.ndarray, mean: np.ndarray, var: np.ndarray) -> float:
     return float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * (y - mean) ** 2 / var))
 
 
-def _fold_predictions(stage, afm, train, test, specs, theta0, friction, gp, gp_kw):
+def _fold_predictions(stage, afm, train, test, specs, theta0, nuisance0, friction, gp, gp_kw):
     """Predictions (mean, var) of the models for one train/test split."""
     out = {}
     t_afm_tr, t_afm_te = afm.t_of(train.u), afm.t_of(test.u)
     base = stage.corrections
-    f = fit_mean(stage, base, specs, train, theta0=theta0)  # also the gauge zero (a nuisance)
-    ext = ExtendedForwardModel(stage, f.effects)
+    f = fit_mean(stage, base, specs, train, theta0=theta0, nuisance0=nuisance0)  # also the gauge zero
+    ext = f.model()
     ext_tr = f.pred
     pe = ext.predict_q(test.q, direction=test.direction, time_s=test.time_s)
     ext_te = pe.t + f.zero_um
@@ -109,6 +108,7 @@ def prediction_gain(
     specs: Sequence[CauseSpec],
     theta: np.ndarray,
     *,
+    nuisance: dict | None = None,
     holdout: DiagnosisData | None = None,
     friction: Sequence[int] = (),
     folds: int = 5,
@@ -129,6 +129,8 @@ def prediction_gain(
         Accepted mean causes (may be empty: extended = the configured physics).
     theta : ndarray, shape (k,)
         Their parameters fitted on the whole of ``data`` (warm start of the refits).
+    nuisance : dict, optional
+        Their stage-physics nuisances fitted on the whole of ``data`` (warm start).
     holdout : DiagnosisData, optional
         Separate test data; then the models are fitted on all of ``data``.
     friction : sequence of int
@@ -164,8 +166,8 @@ def prediction_gain(
         train = data.subset(tr_idx)
         test = holdout if te_idx is None else data.subset(te_idx)
         sl = slice(None) if te_idx is None else te_idx
-        preds = _fold_predictions(stage, afm, train, test, list(specs), theta if len(specs) else None, friction,
-                                  gp, gp_kw)
+        preds = _fold_predictions(stage, afm, train, test, list(specs), theta if len(specs) else None, nuisance,
+                                  friction, gp, gp_kw)
         for k in names:
             mean[k][sl], var[k][sl] = preds[k]
         if progress is not None:

@@ -63,6 +63,19 @@ class NoiseFit:
         """Number of variance parameters."""
         return 1 + len(self.friction)
 
+    def variance(self, J: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The fitted variance model at other moves: σ₀² + Σ_{i∈F} (J_i s_i Δq_i)², µm², shape (m,).
+
+        Parameters
+        ----------
+        J : ndarray, shape (m, n_q)
+            Reading sensitivity to each actuator at those moves.
+        dq : ndarray, shape (m, n_q)
+            Their actuator steps, µm.
+        """
+        idx = [a - 1 for a in self.friction]
+        return self.std_um**2 + np.sum((J[:, idx] * self.std_per_um * dq[:, idx]) ** 2, axis=1)
+
     @property
     def bic(self) -> float:
         """−2ℓ + k log n."""
@@ -134,7 +147,8 @@ class NoiseSelection:
     fit : NoiseFit
         The accepted variance model.
     entries : list of dict
-        Report entries (``cause``, ``params``, ``stderr``, ``delta_bic``, ``equivalent``,
+        Report entries (``cause``, ``params``, ``stderr``, ``delta_bic`` (as
+        :data:`microctl.diagnosis.selection.DELTA_BIC`; 0 for the homoscedastic base model), ``equivalent``,
         ``accepted``), ranked best first.
     accepted : list of str
         Accepted noise causes, in order (``homoscedastic`` first).
@@ -196,6 +210,7 @@ def select_noise(resid: np.ndarray, J: np.ndarray, dq: np.ndarray, u: np.ndarray
     # homoscedastic std of the final model
     entries[-1]["params"]["std_um"] = current.std_um
     entries[-1]["stderr"]["std_um"] = current.stderr_std_um
+    # candidates not accepted: ΔBIC against the final model (their last fits are final + them)
     for a, f in sorted(tried.items(), key=lambda kv: kv[1].bic):
         if a in current.friction:
             continue
@@ -207,7 +222,7 @@ def select_noise(resid: np.ndarray, J: np.ndarray, dq: np.ndarray, u: np.ndarray
     left = breusch_pagan(z, _variance_regressors(dq, u), "Breusch-Pagan (Koenker) of standardised r² on abs(Δq), u, u²")
     if left.p_value < alpha:
         accepted.append("unexplained_heteroscedastic")
-        entries.append({"cause": "unexplained_heteroscedastic", "params": {}, "stderr": {}, "delta_bic": 0.0,
+        entries.append({"cause": "unexplained_heteroscedastic", "params": {}, "stderr": {}, "delta_bic": None,
                         "p_value": left.p_value, "equivalent": [], "accepted": True})
     # order: accepted first (friction before homoscedastic as the stronger statement), then the rest
     entries.sort(key=lambda e: (not e["accepted"],))

@@ -11,20 +11,22 @@ clean data is at most α per run.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.blas import single_thread_blas
-from microctl.config import StageConfig, with_corrections
+from microctl.config import StageConfig
+from microctl.diagnosis.causes import fit_mean
 from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
-from microctl.diagnosis.residuals import Test, breusch_pagan, gp_lr_test, where_analysis
-from microctl.diagnosis.selection import Selection, select_mean_causes
-from microctl.extended import ExtendedForwardModel
+from microctl.diagnosis.outliers import RowTest, extreme_rows, row_test, screen, suspect_cells
+from microctl.diagnosis.residuals import Test, breusch_pagan, gp_inputs, gp_lr_test, where_analysis
+from microctl.diagnosis.selection import Selection, backward, select_mean_causes, withdraw
 
 #: Overall significance level of a diagnosis (per run).
 ALPHA = 1e-3
@@ -64,9 +66,97 @@ class Diagnosis:
     extras: dict = field(default_factory=dict)
 
 
-def _sensitivity(config: StageConfig, effects, data: DiagnosisData) -> np.ndarray:
-    ext = ExtendedForwardModel(config.stage, effects)
-    return ext.predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+def _sensitivity(fit, data: DiagnosisData) -> np.ndarray:
+    return fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+
+
+#: Most rounds of "name causes on the rows kept, test every row" before the outlier set is taken as it is.
+MAX_OUTLIER_PASSES = 3
+
+
+@dataclass(frozen=True, eq=False)
+class Named:
+    """Question 2 on one set of rows: the causes, the noise model and what is left.
+
+    Attributes
+    ----------
+    sel : Selection
+        Mean causes (after the guard's withdrawals).
+    noise : NoiseSelection
+    weights : ndarray (n,) or None
+        1/std per row when friction was accepted (weighted least squares).
+    left : Leftover
+        Structure left after the causes (``unexplained`` when significant).
+    guard : GuardResult or None
+        The causes re-tested alongside the flexible term (run when structure is left).
+    """
+
+    sel: Selection
+    noise: NoiseSelection
+    weights: np.ndarray | None
+    left: Leftover
+    guard: GuardResult | None
+
+
+def _name(stage, data: DiagnosisData, a_each: float, seed: int, progress) -> Named:
+    """Mean causes, noise causes, leftover structure and the guard, on ``data``."""
+    sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
+    noise = select_noise(data.t - sel.final.pred, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    weights = None
+    if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
+        weights = 1.0 / np.sqrt(noise.fit.var)
+        sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
+        noise = select_noise(data.t - sel.final.pred, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    # every cause must still pay once the others are in the model (greedy forward steps can leave
+    # an early small one redundant)
+    drop = backward(sel, stage, data, weights=weights, alpha=a_each)
+    if drop:
+        sel = withdraw(sel, drop, stage, data, weights=weights,
+                       reason="does not pay once the other accepted causes are in the model")
+    w0 = np.ones(data.n) if weights is None else weights
+    left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    grd = None
+    if left.significant and sel.accepted:
+        # structure is left: a cause must still pay alongside the flexible term, or it is withdrawn
+        grd = guard(stage, data, sel.final, left, weights=weights, alpha=a_each)
+        if grd.withdrawn:
+            sel = withdraw(sel, grd.withdrawn, stage, data, weights=weights,
+                           reason="the flexible term (generic basis + GP) explains its contribution as well")
+            left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    if sel.final.unphysical:
+        # after a withdrawal the others lift a ball, which none of them may: they are not these causes
+        sel = withdraw(sel, [sp.key for sp in sel.accepted], stage, data, weights=weights,
+                       reason="without the withdrawn causes, these lift a ball off, which none of them may")
+        left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    if left.significant:
+        # the noise causes are fitted on what the mean model *and* the flexible term leave: structure
+        # is not scatter
+        r = data.t - sel.final.pred
+        r = r - Flexible.fit(data, np.ones(data.n, dtype=bool), r, left.gp if weights is None else None).values
+        noise = select_noise(r, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
+    return Named(sel, noise, weights, left, grd)
+
+
+def _test_rows(named: Named, data: DiagnosisData, keep: np.ndarray, a_each: float) -> tuple[RowTest, np.ndarray]:
+    """The outlier test on every row of ``data`` for a model named on the rows ``keep``.
+
+    Returns the test and the flexible term's values (zero when no structure is left)."""
+    fit = named.sel.final
+    pred = fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    r = data.t - (pred.t + fit.zero_um)
+    smooth, var_f = np.zeros(data.n), np.zeros(data.n)
+    if named.left.significant:
+        gp = named.left.gp if named.weights is None else None  # a weighted GP is in other units: basis only
+        flex = Flexible.fit(data, keep, r[keep], gp)
+        smooth, var_f = flex.values, flex.var
+    std = np.sqrt(named.noise.fit.variance(pred.sensitivity, data.dq) + var_f)
+    test = row_test(r - smooth, std, keep, a_each)
+    if named.left.significant:
+        # the flexible term only approximates structure no cause names (it extrapolates poorly at
+        # the corners of the workspace): a row is an outlier only if it is also extreme against the
+        # spread of that structure (robust z of the residual itself)
+        test = replace(test, outlier=test.outlier & extreme_rows(r[keep], r, a_each))
+    return test, smooth
 
 
 def run_diagnosis(
@@ -80,6 +170,7 @@ def run_diagnosis(
     gp: bool = True,
     folds: int = 5,
     progress: Callable[[str], None] | None = None,
+    set_aside: np.ndarray | None = None,
 ) -> Diagnosis:
     """Diagnose one run.
 
@@ -101,6 +192,9 @@ def run_diagnosis(
     folds : int
     progress : callable(str), optional
         Called after each unit of work.
+    set_aside : ndarray of bool, shape (n,), optional
+        Rows known to be corrupt before any fit (a log's implausible rows,
+        :func:`microctl.measurement_log.implausible_rows`): always outliers, never fitted.
 
     Returns
     -------
@@ -108,28 +202,38 @@ def run_diagnosis(
     """
     with single_thread_blas():
         return _run(config, data, holdout=holdout, seed=seed, alpha=alpha, gain=gain, gp=gp, folds=folds,
-                    progress=progress)
+                    progress=progress, set_aside=set_aside)
 
 
-def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Diagnosis:
+def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_aside=None) -> Diagnosis:
     t_start = time.perf_counter()
     timing = {}
     stage = config.stage
     a_each = alpha / N_DISCREPANCY_TESTS
     afm = AnalyticForwardModel(stage)
-    afm_resid = data.t - afm.t_of(data.u)
+    all_data = data
 
-    # ---- 2. name: mean causes (pass 1, unweighted) --------------------------------------------
-    sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
+    # ---- outliers: set aside by a robust screen, then name on the rest and test every row -------
+    forced = np.zeros(all_data.n, dtype=bool) if set_aside is None else np.asarray(set_aside, dtype=bool)
+    sane = all_data.subset(np.flatnonzero(~forced))  # rows set aside never enter a fit
+    configured = fit_mean(stage, stage.corrections, [], sane)
+    out_mask = forced.copy()
+    out_mask[~forced] = screen(sane.t - configured.pred, sane, a_each)
+    passes = []
+    for _ in range(MAX_OUTLIER_PASSES):
+        keep = ~out_mask
+        data = all_data.subset(np.flatnonzero(keep))
+        named = _name(stage, data, a_each, seed, progress)
+        rows, smooth = _test_rows(named, all_data, keep, a_each)
+        passes.append(int(out_mask.sum()))
+        converged = bool(np.array_equal(rows.outlier | forced, out_mask))
+        if converged:
+            break
+        out_mask = rows.outlier | forced
+    sel, noise, weights, left = named.sel, named.noise, named.weights, named.left
+    afm_resid = data.t - afm.t_of(data.u)
     model_resid = data.t - sel.baseline.pred
     resid = data.t - sel.final.pred
-    noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
-    weights = None
-    if noise.fit.friction:  # heteroscedastic: feasible weighted least squares, pass 2
-        weights = 1.0 / np.sqrt(noise.fit.var)
-        sel = select_mean_causes(stage, data, alpha=a_each, weights=weights, progress=progress)
-        resid = data.t - sel.final.pred
-        noise = select_noise(resid, _sensitivity(config, sel.final.effects, data), data.dq, data.u, alpha=a_each)
     timing["name_s"] = time.perf_counter() - t_start
 
     # ---- 1. show: significance of the discrepancy ------------------------------------------
@@ -142,17 +246,14 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         # already conclusive: the GP test could only lower the minimum (saves a GP fit)
         gp0 = Test("GP likelihood ratio against white noise (not run: other tests conclusive)", float("nan"), 1.0)
     else:
-        gp0, _ = gp_lr_test(model_resid * w0, data.u, seed=seed)
+        gp0, _ = gp_lr_test(model_resid * w0, gp_inputs(data), seed=seed)
     tests0 = [f_test0, lr_best0, gp0, het0]
     p_disc = float(min(1.0, N_DISCREPANCY_TESTS * min(t.p_value for t in tests0)))
     significant = bool(p_disc < alpha or sel.accepted or noise.fit.friction)
 
-    # ---- unexplained structure left over -----------------------------------------------------
-    final_w = resid * w0
-    f_left = sel.steps[-1].structure
-    gp_left, gp_fit = gp_lr_test(final_w, data.u, seed=seed)
-    p_left = float(min(1.0, 2 * min(f_left.p_value, gp_left.p_value)))
-    unexplained = bool(significant and p_left < a_each)
+    # ---- unexplained structure left over ---------------------------------------------------------
+    p_left = left.p_value
+    unexplained = bool(significant and left.significant)
     timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
 
     mean_entries = list(sel.entries)
@@ -160,27 +261,37 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
     if unexplained:
         accepted_mean.append("unexplained")
         mean_entries.insert(len(sel.accepted), {
-            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": 0.0, "p_value": p_left,
-            "equivalent": [], "accepted": True,
-            "tests": [f_left.to_dict(), gp_left.to_dict()],
+            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": None, "p_value": p_left,
+            "equivalent": [], "accepted": True, "tests": left.tests(),
         })
 
     # ---- 3. extend -------------------------------------------------------------------------
-    ext_cfg = with_corrections(config, sel.final.effects)
+    # the accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
+    # compression of a contact loss): the extended model needs both to reproduce the fit
+    ext_cfg = replace(config, stage=replace(sel.final.stage, corrections=sel.final.effects))
 
     # ---- 4. gain -----------------------------------------------------------------------------
     g = None
     if gain:
         t0 = time.perf_counter()
-        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, holdout=holdout, friction=noise.fit.friction,
+        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, nuisance=sel.final.nuisance, holdout=holdout,
+                            friction=noise.fit.friction,
                             folds=folds, seed=seed, gp=gp, progress=progress)
         timing["gain_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
 
     where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
+    # share of the mean reading variance of each accepted noise cause (the printed noise line)
+    J = _sensitivity(sel.final, data)
+    share = {"homoscedastic": noise.fit.std_um**2}
+    for j, a in enumerate(noise.fit.friction):
+        share[f"actuator_friction[{a}]"] = float(np.mean((J[:, a - 1] * noise.fit.std_per_um[j] * data.dq[:, a - 1]) ** 2))
+    tot = sum(share.values()) or 1.0
+    share = {k: float(v / tot) for k, v in share.items()}
     noise_std = noise.fit.std_um
     report = {
-        "rows": data.n,
+        "rows": all_data.n,
+        "rows_fitted": data.n,
         "source": data.source,
         "discrepancy": {
             "significant": significant,
@@ -190,7 +301,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
             "noise_std_um": float(noise_std),
             "p_value": p_disc,
             "alpha": alpha,
-            "test": ("Bonferroni minimum of: F-test of the model residual against a generic basis, "
+            "test": ("Bonferroni minimum of: F-tests of the model residual against generic bases, "
                      "best-cause likelihood ratio, GP-vs-white-noise likelihood ratio, Breusch-Pagan on abs(Δq)"),
             "tests": [t.to_dict() for t in tests0],
             "where": where,
@@ -199,6 +310,9 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
         "accepted": {"mean": accepted_mean, "noise": list(noise.accepted)},
         "mean_causes": mean_entries,
         "noise_causes": noise.entries,
+        "noise_summary": {"dominant": max(share, key=share.get), "variance_share": share,
+                          "note": "share of the mean reading variance over the moves (friction through the contact "
+                                  "sensitivity)"},
         "selection": {
             "stop_reason": sel.stop_reason,
             "weighted": weights is not None,
@@ -209,18 +323,38 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress) -> Di
                 for s in sel.steps
             ],
         },
-        "unexplained": {"significant": unexplained, "p_value": p_left,
-                        "tests": [f_left.to_dict(), gp_left.to_dict()]},
+        "unexplained": {"significant": unexplained, "p_value": p_left, "tests": left.tests(),
+                        "guard": None if named.guard is None else named.guard.to_dict()},
+        "outliers": {
+            "rows": [{**ids, **cell, "z": float(rows.z[ids["index"]])} for ids, cell in
+                     zip(all_data.row_ids(np.flatnonzero(out_mask)),
+                         suspect_cells(all_data, afm.K, out_mask, stage.actuator_names, stage.tool.name))],
+            "count": int(out_mask.sum()),
+            "test": ("residual of the named model (less the flexible term where structure is left), "
+                     "standardised by the noise model and the robust scale of the fitted rows; "
+                     "Bonferroni over rows"),
+            "critical_z": rows.critical,
+            "passes": len(passes),
+            "converged": converged,
+            "note": "left out of every fit and of the RMSEs and tests below; index is 0-based, line is the "
+                    "CSV line (header = line 1)",
+        },
         "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
         "nuisance": {
             "gauge_zero_um": float(sel.final.zero_um),
-            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um)},
-            "note": ("constant offset of the readings (the gauge zero is one noisy reading at the zero state); "
-                     "fitted in every mean model, not a stage cause, not written to extended.yaml"),
+            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um),
+                       **{k: (float(v) if np.isfinite(v) else None) for k, v in sel.final.nuisance_se.items()}},
+            **{k: float(v) for k, v in sel.final.nuisance.items()},
+            "note": ("gauge_zero_um: constant offset of the readings (the gauge zero is one noisy reading at the "
+                     "zero state); fitted in every mean model, not a stage cause, not written to extended.yaml. "
+                     "Stage-physics nuisances fitted with a cause (preload_compression_um with contact_loss) are "
+                     "written to extended.yaml's stage.physics"),
         },
         "corrections": ext_cfg.stage.corrections.to_dict(),
+        "physics_nuisance": ({k: float(v) for k, v in sel.final.nuisance.items()} if sel.final.nuisance else None),
         "timing_s": timing,
     }
     if g is not None:
         report["gain"] = g.to_dict()
-    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g)
+    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g,
+                     {"all_data": all_data, "outliers": out_mask, "named": named, "smooth": smooth})

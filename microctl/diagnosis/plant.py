@@ -16,34 +16,13 @@ import numpy as np
 from microctl.afm import AnalyticForwardModel
 from microctl.backends.simulated import SimulatedStage
 from microctl.collect import space_filling_moves
-from microctl.config import (
-    ActuatorFriction,
-    ActuatorGain,
-    Backlash,
-    ContactLoss,
-    ContactOffset,
-    Drift,
-    Effects,
-    SensorNonlinearity,
-    SensorScale,
-    StageConfig,
-    ToolOffset,
-)
+from microctl.causes import REGISTRY, preload_compression_um
+from microctl.config import Effects, StageConfig
 from microctl.diagnosis.data import DiagnosisData, data_from_arrays
 from microctl.measurement_log import MeasurementLogWriter
 
-#: Planted causes of :func:`random_cause`, in vocabulary order.
-PLANTABLE = (
-    "actuator_gain",
-    "contact_offset",
-    "tool_offset",
-    "sensor_scale",
-    "sensor_nonlinearity",
-    "contact_loss",
-    "backlash",
-    "drift",
-    "actuator_friction",
-)
+#: Planted causes of :func:`random_cause`: the registry, in vocabulary order.
+PLANTABLE = tuple(REGISTRY)
 
 
 def with_effects(config: StageConfig, effects: Effects, seed: int | None = None) -> StageConfig:
@@ -138,18 +117,17 @@ def parameter_bar(name: str, true: float) -> float:
 
 def compression_um(config: StageConfig) -> float:
     """Total contact compression the preload provides, µm (preload / contact stiffness)."""
-    ph = config.stage.physics
-    return ph.preload_n / ph.contact_stiffness_n_per_um
+    return preload_compression_um(config.stage)
 
 
 def random_cause(name: str, rng: np.random.Generator, n_act: int = 4, *,
                  compression_um: float = 5.0) -> tuple[Effects, dict]:
-    """One planted cause of realistic magnitude.
+    """One planted cause of realistic magnitude (:meth:`microctl.causes.Cause.draw`).
 
     Parameters
     ----------
     name : str
-        One of :data:`PLANTABLE`.
+        One of :data:`PLANTABLE` (the registry).
     rng : numpy Generator
         Draws the actuator (uniform) and the magnitude.
     n_act : int
@@ -162,48 +140,12 @@ def random_cause(name: str, rng: np.random.Generator, n_act: int = 4, *,
     effects : Effects
     truth : dict
         ``{"cause", "actuator" (or None), "params": {...}}`` in report names.
-
-    Notes
-    -----
-    Magnitudes: gain 1 ± U(0.03, 0.10); contact/tool offset |d| ∈ U(0.5, 2) mm at a random
-    angle; scale 1 ± U(0.02, 0.06); quad ±U(1e-3, 3e-3)/µm; contact-loss gap
-    compression_um + U(2, 7) µm (beyond what the preload can make up, so the ball lifts off over part of the
-    workspace); backlash lag U(0.1, 0.4) µm; drift ±U(3e-3, 8e-3) µm/s (0.4-2.4 µm over a run); friction
-    U(0.02, 0.06) per µm (sim_paper.yaml's rig has 0.6).
     """
+    if name not in REGISTRY:
+        raise ValueError(f"unknown cause {name!r}; plantable: {', '.join(PLANTABLE)}")
+    cls = REGISTRY[name]
     act = int(rng.integers(1, n_act + 1))
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    ang = rng.uniform(0, 2 * np.pi)
-    if name == "actuator_gain":
-        g = 1.0 + sign * rng.uniform(0.03, 0.10)
-        return Effects(actuator_gain=(ActuatorGain(act, g),)), {"cause": name, "actuator": act, "params": {"gain": g}}
-    if name == "contact_offset":
-        r = rng.uniform(0.5, 2.0)
-        dx, dy = float(r * np.cos(ang)), float(r * np.sin(ang))
-        return (Effects(contact_offset=(ContactOffset(act, dx, dy),)),
-                {"cause": name, "actuator": act, "params": {"dx_mm": dx, "dy_mm": dy}})
-    if name == "tool_offset":
-        r = rng.uniform(0.5, 2.0)
-        dx, dy = float(r * np.cos(ang)), float(r * np.sin(ang))
-        return Effects(tool_offset=ToolOffset(dx, dy)), {"cause": name, "actuator": None, "params": {"dx_mm": dx, "dy_mm": dy}}
-    if name == "sensor_scale":
-        s = 1.0 + sign * rng.uniform(0.02, 0.06)
-        return Effects(sensor_scale=SensorScale(s)), {"cause": name, "actuator": None, "params": {"scale": s}}
-    if name == "sensor_nonlinearity":
-        qd = sign * rng.uniform(1e-3, 3e-3)
-        return (Effects(sensor_nonlinearity=SensorNonlinearity(qd)),
-                {"cause": name, "actuator": None, "params": {"quad_per_um": qd}})
-    if name == "contact_loss":
-        gap = compression_um + rng.uniform(2.0, 7.0)
-        return Effects(contact_loss=(ContactLoss(act, gap),)), {"cause": name, "actuator": act, "params": {"gap_um": gap}}
-    if name == "backlash":
-        lag = rng.uniform(0.1, 0.4)
-        return Effects(backlash=(Backlash(act, lag),)), {"cause": name, "actuator": act, "params": {"lag_um": lag}}
-    if name == "drift":
-        rate = sign * rng.uniform(3e-3, 8e-3)
-        return Effects(drift=Drift(rate)), {"cause": name, "actuator": None, "params": {"rate_um_per_s": rate}}
-    if name == "actuator_friction":
-        s = rng.uniform(0.02, 0.06)
-        return (Effects(actuator_friction=(ActuatorFriction(act, s),)),
-                {"cause": name, "actuator": act, "params": {"std_per_um": s}})
-    raise ValueError(f"unknown cause {name!r}; plantable: {', '.join(PLANTABLE)}")
+    cause = cls.draw(rng, act if cls.per_actuator else None, compression_um=compression_um)
+    params = cause.report_params()
+    params.pop("actuator", None)
+    return Effects.of([cause]), {"cause": name, "actuator": act if cls.per_actuator else None, "params": params}

@@ -36,6 +36,12 @@ def separating_measurement(a: str, b: str) -> str:
     return SEPARATING_MEASUREMENT.get(frozenset({a, b}), _DEFAULT_SEPARATION)
 
 
+def cause_label(e: dict) -> str:
+    """``cause[actuator]`` of a report entry (``cause`` for a global one)."""
+    a = e.get("params", {}).get("actuator")
+    return e["cause"] if a is None else f"{e['cause']}[{a}]"
+
+
 def add_identifiability(report: dict) -> None:
     """Add ``identifiability`` (per accepted cause: its class and the separating measurement)."""
     out = []
@@ -46,18 +52,15 @@ def add_identifiability(report: dict) -> None:
         seps = sorted({separating_measurement(e["cause"], q["cause"]) for q in e["equivalent"]})
         out.append({
             "cause": e["cause"],
-            "class": [e["cause"] + _act(e)] + [q["cause"] + _act(q) for q in e["equivalent"]],
+            "key": cause_label(e),
+            "params": e["params"],
+            "class": [cause_label(e)] + [cause_label(q) for q in e["equivalent"]],
             "causes": names,
             "why": ("with one scalar gauge these causes predict the same readings within the noise "
                     "(same likelihood within 2Δℓ < 6)"),
             "separate_by": seps,
         })
     report["identifiability"] = out
-
-
-def _act(e: dict) -> str:
-    a = e.get("params", {}).get("actuator")
-    return "" if a is None else f"[{a}]"
 
 
 def _num(x, fmt: str) -> str:
@@ -68,23 +71,93 @@ def _fmt_params(e: dict) -> str:
     parts = []
     for k, v in e.get("params", {}).items():
         if k == "actuator":
-            parts.append(f"actuator {v}")
             continue
         se = e.get("stderr", {}).get(k)
         parts.append(f"{k} = {v:.5g}" + (f" ± {se:.2g}" if isinstance(se, (int, float)) else ""))
+    for k, v in (e.get("nuisance") or {}).items():
+        parts.append(f"{k} = {v:.4g} (nuisance)")
     return ", ".join(parts) if parts else "—"
+
+
+def accepted_labels(report: dict, kind: str = "mean") -> list[str]:
+    """Accepted causes with their actuators, in acceptance order (``unexplained`` included)."""
+    entries = report["mean_causes"] if kind == "mean" else report["noise_causes"]
+    acc = [cause_label(e) for e in entries if e.get("accepted")]
+    order = report["accepted"][kind]
+    # keep the acceptance order of ``accepted`` (entries are ranked; the names repeat per actuator)
+    out, pool = [], list(acc)
+    for name in order:
+        hit = next((x for x in pool if x == name or x.startswith(name + "[")), name)
+        out.append(hit)
+        if hit in pool:
+            pool.remove(hit)
+    return out
+
+
+def gauge_zero_note(report: dict) -> str:
+    """One sentence on the gauge-zero offset the "configured model" RMSE is taken after."""
+    nz = report["nuisance"]
+    return (f"after its one fitted constant, the gauge-zero offset {nz['gauge_zero_um']:.3g} ± "
+            f"{nz['stderr']['gauge_zero_um']:.2g} µm (readings are relative to one noisy gauge reading at the zero "
+            "state: a nuisance of the data, not a cause, not written to extended.yaml)")
+
+
+def noise_line(report: dict) -> str:
+    """The noise level and the dominant noise cause, one line."""
+    d, ns = report["discrepancy"], report.get("noise_summary", {})
+    dom = ns.get("dominant", "homoscedastic")
+    share = ns.get("variance_share", {}).get(dom)
+    extra = f"; dominant noise cause {dom}" + (f" ({100 * share:.0f} % of the mean variance)" if share is not None else "")
+    return f"noise: base std {d['noise_std_um']:.3g} µm{extra}"
+
+
+def outlier_line(report: dict) -> str:
+    """Outlying rows, one line."""
+    o = report.get("outliers", {})
+    rows = o.get("rows", [])
+    if not rows:
+        return "outlying rows: none"
+    parts = []
+    for r in rows:
+        where = f"line {r['line']}" if r.get("line") is not None else f"row {r['index']}"
+        parts.append(f"{where} (seq {r['seq']}, {'/'.join(r['columns'])})")
+    return f"outlying rows (left out of every fit): {', '.join(parts)}"
+
+
+def summary_lines(report: dict) -> list[str]:
+    """The command's printed summary."""
+    d = report["discrepancy"]
+    L = [f"rows {report['rows']}  AFM RMSE {d['afm_rmse_um']:.4g} µm  {noise_line(report)}  "
+         f"significant {'yes' if d['significant'] else 'no'} (p = {d['p_value']:.3g})",
+         f"configured model RMSE {d['model_rmse_um']:.4g} µm, {gauge_zero_note(report)}",
+         outlier_line(report),
+         f"accepted mean causes: {', '.join(accepted_labels(report, 'mean')) or 'none'};  "
+         f"noise: {', '.join(accepted_labels(report, 'noise'))}"]
+    wd = [cause_label(e) for e in report["mean_causes"] if e.get("withdrawn")]
+    if wd:
+        L.append(f"withdrawn (fitted, but the data do not support them): {', '.join(wd)}")
+    if "gain" in report:
+        g = report["gain"]["rmse_um"]
+        L.append("held-out RMSE (µm): " + "  ".join(f"{k} {v:.4g}" for k, v in g.items()))
+    return L
 
 
 def render_markdown(report: dict) -> str:
     """report.md: the four questions in order, short tables, figure links."""
+    from microctl.diagnosis.selection import DELTA_BIC
+
     d = report["discrepancy"]
-    L = ["# Model-discrepancy diagnosis", "", f"Data: `{report.get('source', '')}`, {report['rows']} moves.", ""]
+    L = ["# Model-discrepancy diagnosis", "",
+         f"Data: `{report.get('source', '')}`, {report['rows']} moves ({report.get('outliers', {}).get('count', 0)} "
+         "outlying rows left out of every fit and of the numbers below).", ""]
     L += ["## 1. What does the model get wrong?", ""]
-    L += [f"- AFM residual RMSE: **{d['afm_rmse_um']:.4g} µm** (configured model through the contact physics: "
-          f"{d['model_rmse_um']:.4g} µm; after the accepted causes: {d['extended_rmse_um']:.4g} µm).",
-          f"- Noise level (fitted base std): {d['noise_std_um']:.4g} µm.",
+    L += [f"- AFM residual RMSE: **{d['afm_rmse_um']:.4g} µm**.",
+          f"- Configured model through the contact physics: {d['model_rmse_um']:.4g} µm, {gauge_zero_note(report)}; "
+          f"after the accepted causes: {d['extended_rmse_um']:.4g} µm.",
+          f"- Noise: {noise_line(report)[len('noise: '):]}.",
           f"- Discrepancy significant: **{'yes' if d['significant'] else 'no'}** (p = {d['p_value']:.3g}; "
-          f"{d['test']}; level {d['alpha']:g}).", ""]
+          f"{d['test']}; level {d['alpha']:g}).",
+          f"- {outlier_line(report).capitalize()}.", ""]
     L += ["| test | statistic | p-value |", "|---|---|---|"]
     for t in d["tests"]:
         L.append(f"| {t['test']} | {_num(t['statistic'], '.4g')} | {_num(t['p_value'], '.3g')} |")
@@ -94,28 +167,36 @@ def render_markdown(report: dict) -> str:
         L.append(f"| {w['variable']} | {w['test']} | {w['effect_um']:.3g} | {w['p_value']:.3g} |")
     L += ["", "![residuals](residuals.png)", ""]
     L += ["## 2. What is the cause?", ""]
-    acc = report["accepted"]
-    L.append(f"Accepted mean causes: **{', '.join(acc['mean']) or 'none'}**; noise: **{', '.join(acc['noise'])}** "
-             f"(selection stopped: {report['selection']['stop_reason']}).")
-    L += ["", "| cause | parameters (± std. error) | ΔBIC | accepted |", "|---|---|---|---|"]
+    L.append(f"Accepted mean causes: **{', '.join(accepted_labels(report, 'mean')) or 'none'}**; noise: "
+             f"**{', '.join(accepted_labels(report, 'noise'))}** (selection stopped: {report['selection']['stop_reason']}).")
+    L += ["", f"{DELTA_BIC}.", "", "| cause | parameters (± std. error) | ΔBIC | accepted |", "|---|---|---|---|"]
     for e in report["mean_causes"][:12]:
-        L.append(f"| {e['cause']} | {_fmt_params(e)} | {e.get('delta_bic', 0):.1f} | {'yes' if e.get('accepted') else ''} |")
+        acc = "yes" if e.get("accepted") else ("withdrawn" if e.get("withdrawn") else "")
+        L.append(f"| {cause_label(e)} | {_fmt_params(e)} | {_num(e.get('delta_bic'), '.1f')} | {acc} |")
+    for e in report["mean_causes"]:
+        if e.get("withdrawn"):
+            L += ["", f"`{cause_label(e)}` was fitted but withdrawn: {e['withdrawn']}."]
     for item in report.get("identifiability", []):
-        L += ["", f"**Equivalent to the accepted `{item['cause']}`** on this data: {', '.join(item['class'][1:])}. "
-              f"{item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
+        L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
+              f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
         for e in report["mean_causes"]:
-            if e.get("accepted") and e["cause"] == item["cause"]:
+            if e.get("accepted") and cause_label(e) == item["key"]:
                 for q in e["equivalent"]:
-                    L.append(f"  - {q['cause']}: {_fmt_params(q)}")
+                    L.append(f"  - {cause_label(q)}: {_fmt_params(q)}")
     if report["unexplained"]["significant"]:
         L += ["", f"A structured residual is left that no vocabulary cause explains (`unexplained`, "
-              f"p = {report['unexplained']['p_value']:.3g})."]
+              f"p = {report['unexplained']['p_value']:.3g}); the causes above still pay alongside a flexible term "
+              "(generic basis + GP) fitted to it."]
     L += ["", "| noise cause | parameters | ΔBIC | accepted |", "|---|---|---|---|"]
     for e in report["noise_causes"]:
-        L.append(f"| {e['cause']} | {_fmt_params(e)} | {e.get('delta_bic', 0):.1f} | {'yes' if e.get('accepted') else ''} |")
+        L.append(f"| {cause_label(e)} | {_fmt_params(e)} | {_num(e.get('delta_bic'), '.1f')} | "
+                 f"{'yes' if e.get('accepted') else ''} |")
     L += ["", "![causes](causes.png)", ""]
     L += ["## 3. Extended model", "", "`extended.yaml` is the input config with these corrections in `stage.corrections`:",
           "", "```", str(report.get("corrections") or "{}"), "```", ""]
+    phys = report.get("physics_nuisance")
+    if phys:
+        L += [f"and the stage physics fitted with them: {phys} (in `stage.physics`).", ""]
     if "gain" in report:
         g = report["gain"]
         L += ["## 4. Gain", "", f"Method: {g['method']} ({g['held_out_moves']} held-out moves).", "",

@@ -21,7 +21,7 @@ every actuator (docs/diagnosis.md derives why and what measurement separates the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -104,6 +104,7 @@ class Selection:
     entries: list
     stop_reason: str
     specs: tuple = field(default=())
+    withdrawn: tuple = field(default=())
 
 
 def _lr_p(cur: MeanFit, new: MeanFit, n_tests: int) -> float:
@@ -142,7 +143,8 @@ def select_mean_causes(
     Selection
     """
     base: Effects = stage.corrections
-    specs = list(candidate_specs(stage, data.time_s is not None) if specs is None else specs)
+    has = ("time_s",) if data.time_s is not None else ()
+    specs = list(candidate_specs(stage, has) if specs is None else specs)
     baseline = fit_mean(stage, base, [], data, weights=weights)
     current = baseline
     accepted: list[CauseSpec] = []
@@ -162,9 +164,17 @@ def select_mean_causes(
         fits: dict[str, MeanFit] = {}
         for s in remaining:
             theta0 = np.concatenate([current.theta, s.start_from(base)])  # warm start
-            fits[s.key] = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, weights=weights)
+            f = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, nuisance0=current.nuisance,
+                         weights=weights)
             if progress is not None:
                 progress(s.key)
+            if f.unphysical:  # lifts a ball though no cause of the set may: not these causes
+                continue
+            fits[s.key] = f
+        if not fits:
+            steps.append(Step(current, {}, None, 1.0, structure, False))
+            stop = "no candidate fits without lifting a ball"
+            break
         best_key = min(fits, key=lambda k: fits[k].bic)
         best = fits[best_key]
         p = _lr_p(current, best, len(fits))
@@ -185,7 +195,14 @@ def select_mean_causes(
     return Selection(baseline, final, steps, accepted, _entries(final, steps, accepted), stop, tuple(specs))
 
 
+#: The one definition of ΔBIC in the report (mean and noise tables, causes.png).
+DELTA_BIC = ("ΔBIC = BIC(the model with the cause added) − BIC(the model it was added to): for an accepted "
+             "cause and its equivalents the model before the step that accepted it, for another candidate the "
+             "configured model (mean causes) or the final noise model (noise causes); negative = the cause pays")
+
+
 def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> list[dict]:
+    """Report entries with ΔBIC as :data:`DELTA_BIC` defines it."""
     out: list[dict] = []
     split = final.split()
     for j, (spec, theta, se) in enumerate(split):
@@ -195,23 +212,90 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
         for k in step.equivalent:
             f = step.fits[k]
             s2, th2, se2 = f.split()[-1]
-            eq.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - step.fits[spec.key].bic),
-                                  rank_deficient=bool(f.rank_deficient)))
-        out.append(cause_entry(spec, theta, se, delta_bic=0.0,
-                               delta_bic_vs_previous=float(step.fits[spec.key].bic - cur_bic),
+            eq.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - cur_bic),
+                                  rank_deficient=bool(f.rank_deficient),
+                                  **({"nuisance": {n: float(v) for n, v in f.nuisance.items()}} if f.nuisance else {})))
+        out.append(cause_entry(spec, theta, se, delta_bic=float(step.fits[spec.key].bic - cur_bic),
                                p_value=float(step.p_value), rank_deficient=bool(final.rank_deficient),
-                               equivalent=eq, accepted=True))
-    # the other candidates of the first step, by BIC relative to its best
+                               equivalent=eq, accepted=True, step=steps.index(step) + 1,
+                               nuisance={k: float(v) for k, v in step.fits[spec.key].nuisance.items()}))
+    # the other candidates of the first step, against the configured model, best first
     first = steps[0]
     if first.fits:
         listed = {e["cause"] + (f"[{e['params']['actuator']}]" if "actuator" in e["params"] else "")
                   for e in out} | set().union(*[set(s.equivalent) for s in steps])
-        best_bic = min(f.bic for f in first.fits.values())
         for k, f in sorted(first.fits.items(), key=lambda kv: kv[1].bic):
             if k in listed:
                 continue
             s2, th2, se2 = f.split()[-1]
-            out.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - best_bic),
-                                   delta_bic_vs_previous=float(f.bic - first.current.bic),
-                                   rank_deficient=bool(f.rank_deficient), equivalent=[], accepted=False))
+            out.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - first.current.bic),
+                                   rank_deficient=bool(f.rank_deficient), equivalent=[], accepted=False,
+                                   **({"nuisance": {n: float(v) for n, v in f.nuisance.items()}} if f.nuisance else {})))
+    return out
+
+
+def withdraw(sel: Selection, keys: Sequence[str], stage: Stage, data: DiagnosisData, *,
+             weights: np.ndarray | None = None, reason: str = "") -> Selection:
+    """``sel`` without the accepted causes ``keys``: the others refitted jointly, entries rebuilt.
+
+    The withdrawn causes stay in ``entries`` (``accepted: false``, ``withdrawn: reason``).
+    """
+    keys = set(keys)
+    if not keys:
+        return sel
+    kept = [s for s in sel.accepted if s.key not in keys]
+    split = {s.key: th for s, th, _ in sel.final.split()}
+    theta0 = np.concatenate([split[s.key] for s in kept]) if kept else None
+    final = fit_mean(stage, stage.corrections, kept, data, theta0=theta0, nuisance0=sel.final.nuisance,
+                     weights=weights)
+    entries = _entries(final, sel.steps, kept)
+    gone = []
+    accepted_at = {_entry_key(e): e for e in sel.entries if e.get("accepted")}
+    for s, th, se in sel.final.split():
+        if s.key in keys:
+            e = accepted_at.get(s.key, {})
+            gone.append(cause_entry(s, th, se, delta_bic=e.get("delta_bic"), rank_deficient=bool(sel.final.rank_deficient),
+                                    equivalent=e.get("equivalent", []), accepted=False, withdrawn=reason))
+    entries = entries[:len(kept)] + gone + [e for e in entries[len(kept):]
+                                            if _entry_key(e) not in keys]
+    return replace(sel, final=final, accepted=kept, entries=entries, withdrawn=tuple(sel.withdrawn) + tuple(keys))
+
+
+def _entry_key(e: dict) -> str:
+    a = e["params"].get("actuator")
+    return e["cause"] if a is None else f"{e['cause']}[{a}]"
+
+
+def backward(sel: Selection, stage: Stage, data: DiagnosisData, *, weights: np.ndarray | None = None,
+             alpha: float = 1e-3) -> list[str]:
+    """Accepted causes that no longer pay once the others are in the model (backward elimination).
+
+    Each cause of the final model is removed in turn (the others refitted, warm-started); its
+    likelihood-ratio test against the full model, Bonferroni over the causes, must have p < α.
+    The worst failing cause is dropped and the rest tested again.
+
+    Returns
+    -------
+    list of str
+        Keys to withdraw (may be empty).
+    """
+    kept = list(sel.accepted)
+    split = {s.key: th for s, th, _ in sel.final.split()}
+    current = sel.final
+    out: list[str] = []
+    while len(kept) >= 2:
+        worst, worst_p, worst_fit = None, -1.0, None
+        for spec in kept:
+            others = [s for s in kept if s is not spec]
+            f0 = fit_mean(stage, stage.corrections, others, data, theta0=np.concatenate([split[s.key] for s in others]),
+                          nuisance0=current.nuisance, weights=weights)
+            p = _lr_p(f0, current, len(kept))
+            if p > worst_p:
+                worst, worst_p, worst_fit = spec, p, f0
+        if worst_p < alpha:
+            break
+        out.append(worst.key)
+        kept.remove(worst)
+        current = worst_fit
+        split = {s.key: th for s, th, _ in current.split()}
     return out
