@@ -289,15 +289,8 @@ class RedundantSet:
         return np.array(verts), np.array(edges, dtype=int).reshape(-1, 2)
 
     def d_of_target(self, target: float) -> float:
-        """Linear tool displacement d = w·u whose gauge reading is ``target`` (inverts the sensor)."""
-        a, b = self.afm.quad, self.afm.scale
-        if a == 0.0:
-            return target / b
-        disc = b * b + 4.0 * a * target
-        if disc < 0:
-            return -b / (2 * a)
-        r = np.array([(-b + math.sqrt(disc)) / (2 * a), (-b - math.sqrt(disc)) / (2 * a)])
-        return float(r[np.argmin(np.abs(r - target / b))])
+        """Linear tool displacement d = w·u whose gauge reading is ``target`` (:meth:`Sensor.inverse`)."""
+        return float(self.afm.sensor.inverse(target))
 
     def section_box(self, d: float) -> tuple[np.ndarray, np.ndarray] | None:
         """Bounding box of the plane section {w·u = d} of the workspace in c coordinates."""

@@ -291,8 +291,8 @@ class EAFM:
         f = self.model.y_mean + self.model.y_scale * a
         dx = self.model.y_scale * da / self._x_scale
         d = U @ self.afm.w_pred
-        t = self.afm.scale * d + self.afm.quad * d * d + f
-        dt = (self.afm.scale + 2.0 * self.afm.quad * d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
+        t = self.afm.sensor.forward(d) + f  # eq. 13: the gauge reading of the tool displacement
+        dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
         return t, dt
 
     def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
