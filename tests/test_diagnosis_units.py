@@ -223,3 +223,17 @@ def test_a_gauge_zero_offset_is_a_nuisance_not_a_discrepancy(cfg):
     assert rep["accepted"]["mean"] == []
     z, se = rep["nuisance"]["gauge_zero_um"], rep["nuisance"]["stderr"]["gauge_zero_um"]
     assert abs(z - 2 * sigma) <= 4 * se  # se = σ/√n
+
+
+def test_diagnosis_gp_likelihood_gradient_matches_finite_differences():
+    """The residual GP of the diagnosis (microctl.kernels' SE + white noise): analytic gradient
+    of the negative log marginal likelihood against central differences."""
+    from microctl.diagnosis.residuals import _gp_nll
+
+    rng = np.random.default_rng(5)
+    X, y = rng.standard_normal((15, 3)), rng.standard_normal(15)
+    theta = np.array([0.2, -0.4, 0.6, -0.3, -1.5])
+    _, g = _gp_nll(theta, X, y)
+    fd = np.array([(_gp_nll(theta + e, X, y)[0] - _gp_nll(theta - e, X, y)[0]) / 2e-6
+                   for e in np.eye(theta.size) * 1e-6])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)

@@ -33,6 +33,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize
 
 from microctl.diagnosis.data import DiagnosisData
+from microctl.kernels import Kernel
 
 
 @dataclass(frozen=True)
@@ -208,26 +209,17 @@ def breusch_pagan(resid: np.ndarray, Z: np.ndarray, name: str = "Breusch-Pagan (
 # ---- homoscedastic GP against white noise -------------------------------------------
 
 
-def _sq_dists(Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
-    """Per-dimension squared distances D_j = (x_aj − x_bj)², shape (d, n_a, n_b)."""
-    return (Xa.T[:, :, None] - Xb.T[:, None, :]) ** 2
-
-
-def _se(D: np.ndarray, ls2: np.ndarray, sf2: float) -> np.ndarray:
-    """SE-ARD kernel σ_f² exp(−½ Σ_j D_j/ℓ_j²) from :func:`_sq_dists` (the one SE evaluation here)."""
-    return sf2 * np.exp(-0.5 * np.tensordot(1.0 / ls2, D, axes=(0, 0)))
-
-
-def _gp_nll(theta: np.ndarray, X: np.ndarray, y: np.ndarray, D: np.ndarray) -> tuple[float, np.ndarray]:
+def _gp_nll(theta: np.ndarray, X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood of an SE-ARD GP + white noise and its gradient.
 
-    θ = [log ℓ_1..d, log σ_f², log σ_n²]; K = σ_f² exp(−½ Σ_j D_j/ℓ_j²) + σ_n² I;
-    ∂(−log p)/∂θ = −½ tr((ααᵀ − K⁻¹) ∂K/∂θ), α = K⁻¹ y (Rasmussen & Williams eq. 5.9).
+    θ = [log ℓ_1..d, log σ_f², log σ_n²]; K = k(X, X) + σ_n² I with the package's one SE kernel
+    (:class:`microctl.kernels.Kernel`); ∂(−log p)/∂θ = −½ tr((ααᵀ − K⁻¹) ∂K/∂θ), α = K⁻¹ y
+    (Rasmussen & Williams eq. 5.9).
     """
     d = X.shape[1]
-    ls2 = np.exp(2 * theta[:d])
-    sf2, sn2 = np.exp(theta[d]), np.exp(theta[d + 1])
-    Kse = _se(D, ls2, sf2)
+    k = Kernel(theta[:d], float(theta[d]))
+    sn2 = float(np.exp(theta[d + 1]))
+    Kse = k.se(X, X)
     K = Kse + sn2 * np.eye(len(y))
     try:
         c = cho_factor(K, lower=True)
@@ -237,10 +229,7 @@ def _gp_nll(theta: np.ndarray, X: np.ndarray, y: np.ndarray, D: np.ndarray) -> t
     nll = 0.5 * y @ alpha + np.sum(np.log(np.diag(c[0]))) + 0.5 * len(y) * np.log(2 * np.pi)
     W = np.outer(alpha, alpha) - cho_solve(c, np.eye(len(y)))
     g = np.empty_like(theta)
-    WK = W * Kse
-    for j in range(d):
-        g[j] = -0.5 * np.sum(WK * D[j]) / ls2[j]
-    g[d] = -0.5 * np.sum(WK)
+    g[: d + 1] = -k.grad_traces(0.5 * W, Kse, X)  # lengthscales and signal variance
     g[d + 1] = -0.5 * sn2 * np.trace(W)
     return float(nll), g
 
@@ -269,7 +258,7 @@ class GPFit:
         """Signal covariance k(Xa, Xb) in µm² (inputs in the fit's original units), shape (n_a, n_b)."""
         za = (Xa - self.x_mean) / self.x_std
         zb = za if Xb is None else (Xb - self.x_mean) / self.x_std
-        return _se(_sq_dists(za, zb), self.lengthscales**2, self.signal_std_um**2)
+        return Kernel(np.log(self.lengthscales), 2.0 * float(np.log(self.signal_std_um))).se(za, zb)
 
 
 #: Largest number of residuals the GP tests use (a seeded subset beyond; O(n³) per evaluation).
@@ -295,7 +284,6 @@ def fit_gp(X: np.ndarray, y: np.ndarray, max_points: int = GP_MAX_POINTS, seed: 
     Xs = (X - x_mean) / x_sd
     scale = float(np.std(y)) or 1.0
     ys = (y - y.mean()) / scale
-    D = _sq_dists(Xs, Xs)  # (d, n, n)
     d = X.shape[1]
     bounds = [(np.log(0.05), np.log(30.0))] * d + [(-12.0, 3.0), (-12.0, 1.0)]
     best = None
@@ -303,7 +291,7 @@ def fit_gp(X: np.ndarray, y: np.ndarray, max_points: int = GP_MAX_POINTS, seed: 
     # structure in one input among many before the optimiser drops the signal
     for ls0, f0 in ((1.0, 0.3), (0.3, 0.5), (3.0, 0.7)):
         x0 = np.concatenate([np.full(d, np.log(ls0)), [np.log(f0), np.log(1 - f0)]])
-        res = minimize(_gp_nll, x0, args=(Xs, ys, D), jac=True, method="L-BFGS-B", bounds=bounds,
+        res = minimize(_gp_nll, x0, args=(Xs, ys), jac=True, method="L-BFGS-B", bounds=bounds,
                        options={"maxiter": 100})
         if best is None or res.fun < best.fun:
             best = res
