@@ -509,9 +509,10 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
         if k <= 0:
             raise ctx.fail(f"stage.physics.flexure_stiffness[{i}]", f"must be > 0, got {k!r}")
 
-    # corrections are mean causes; a noise cause (scatter) is what the GP models
-    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators),
-                                 kinds=MEAN_KINDS)
+    # corrections: what a diagnosis found. Mean causes correct the AFM (static ones) or the
+    # extended model (dynamic ones); noise causes (stick-slip) tell the residual model which
+    # actuators scatter (microctl.training.noise_features_for)
+    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
     stage = Stage(
         name=name,
         dof=tuple(dof),

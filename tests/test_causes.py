@@ -58,10 +58,15 @@ def test_every_cause_round_trips_through_the_config():
     assert [c.name for c in eff.items()] == list(REGISTRY)
 
 
-def test_corrections_refuse_noise_causes_and_bad_values():
+def test_corrections_accept_noise_causes_and_refuse_bad_values():
+    """A diagnosed stick-slip is a correction (extended.yaml): it tells the residual model which
+    actuators scatter; its values are checked like any cause's."""
     doc = _doc()
     doc["stage"]["corrections"] = {"actuator_friction": [{"actuator": 1, "std_per_um": 0.1}]}
-    with pytest.raises(ConfigError, match=r"stage\.corrections\.actuator_friction: is a noise cause"):
+    cfg = parse_stage_config(doc, "s.yaml")
+    assert [(c.actuator, c.std_per_um) for c in cfg.stage.corrections.actuator_friction] == [(1, 0.1)]
+    doc["stage"]["corrections"] = {"actuator_friction": [{"actuator": 1, "std_per_um": -0.1}]}
+    with pytest.raises(ConfigError, match=r"stage\.corrections\.actuator_friction\[0\]\.std_per_um"):
         parse_stage_config(doc, "s.yaml")
     for cause, entry, msg in [
         ("actuator_gain", [{"actuator": 1, "gain": 0.0}], r"actuator_gain\[0\]\.gain"),

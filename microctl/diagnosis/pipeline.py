@@ -24,6 +24,8 @@ from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
+from microctl.causes import ActuatorFriction
+from microctl.diagnosis.control import control_comparison
 from microctl.diagnosis.outliers import RowTest, extreme_rows, row_test, screen, suspect_cells
 from microctl.diagnosis.residuals import Test, breusch_pagan, gp_inputs, gp_lr_test, where_analysis
 from microctl.diagnosis.selection import Selection, backward, select_mean_causes, withdraw
@@ -44,7 +46,8 @@ class Diagnosis:
     report : dict
         report.json content (shared/spec/diagnosis.md fields and more).
     extended_config : StageConfig
-        The input config with the accepted mean causes in ``stage.corrections``.
+        The input config with the accepted causes in ``stage.corrections`` (mean causes, and
+        the accepted stick-slip actuators as ``actuator_friction``).
     data : DiagnosisData
     afm_residual, model_residual, final_residual : ndarray (n,)
         Residual of the AFM, of the configured model through the physics, and of the
@@ -268,7 +271,12 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     # ---- 3. extend -------------------------------------------------------------------------
     # the accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
     # compression of a contact loss): the extended model needs both to reproduce the fit
-    ext_cfg = replace(config, stage=replace(sel.final.stage, corrections=sel.final.effects))
+    # and the accepted noise causes (stick-slip per actuator): the residual model's noise features
+    # (microctl.training.noise_features_for), so the extended EAFM's controller uses them
+    friction = tuple(ActuatorFriction(actuator=int(a), std_per_um=float(sd))
+                     for a, sd in zip(noise.fit.friction, noise.fit.std_per_um))
+    ext_effects = sel.final.effects.with_(*friction) if friction else sel.final.effects
+    ext_cfg = replace(config, stage=replace(sel.final.stage, corrections=ext_effects))
 
     # ---- 4. gain -----------------------------------------------------------------------------
     g = None
@@ -278,6 +286,12 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
                             friction=noise.fit.friction,
                             folds=folds, seed=seed, gp=gp, progress=progress)
         timing["gain_s"] = time.perf_counter() - t0
+    control = None
+    if gain and not ext_effects.is_empty():
+        # what the extension changes in control terms: plain vs extended EAFM controller
+        t0 = time.perf_counter()
+        control = control_comparison(config, ext_cfg, data, seed=seed)
+        timing["control_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
 
     where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
@@ -356,5 +370,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     }
     if g is not None:
         report["gain"] = g.to_dict()
+    if control is not None:
+        report["control"] = control
     return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g,
                      {"all_data": all_data, "outliers": out_mask, "named": named, "smooth": smooth})

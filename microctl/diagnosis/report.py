@@ -139,7 +139,45 @@ def summary_lines(report: dict) -> list[str]:
     if "gain" in report:
         g = report["gain"]["rmse_um"]
         L.append("held-out RMSE (µm): " + "  ".join(f"{k} {v:.4g}" for k, v in g.items()))
+    if "control" in report:
+        L.append(control_line(report["control"]))
     return L
+
+
+def control_line(c: dict) -> str:
+    """One printed line: the scatter at the poses the plain and the extended EAFM controllers choose."""
+    key = "true_std_um" if c["truth"] else "predicted_std_um"
+    what = "true" if c["truth"] else "predicted"
+    pl = ", ".join(f"{r[key]:.3f}" for r in c["models"]["plain"])
+    ex = ", ".join(f"{r[key]:.3f}" for r in c["models"]["extended"])
+    return (f"control at {', '.join(f'{t:.3g}' for t in c['targets_um'])} µm: {what} std at the chosen poses "
+            f"plain EAFM [{pl}] µm, extended [{ex}] µm")
+
+
+def control_markdown(c: dict) -> list[str]:
+    """The gain section's control table (microctl.diagnosis.control)."""
+    L = ["### What the extension changes in control terms", "",
+         "The plain and the extended EAFM (each the default residual model trained on this log; the extended "
+         "one on the AFM with the accepted corrections and a noise model restricted to the diagnosed stick-slip "
+         "actuators) drive the default optimal controller (eq. 4) to the same targets in sequence from the zero "
+         "state." + (" Scatter and error at the chosen poses from the simulated stage's truth; the oracle is the "
+                     "quietest pose that truly reaches the target." if c["truth"] else
+                     " No simulator here: only predictions (the true scatter needs the stage)."), ""]
+    head = "| target (µm) | model | q (µm) | predicted std (µm) |"
+    sep = "|---|---|---|---|"
+    if c["truth"]:
+        head += " true std (µm) | true error (µm) | oracle std (µm) |"
+        sep += "---|---|---|"
+    L += [head, sep]
+    for j, t in enumerate(c["targets_um"]):
+        for label in ("plain", "extended"):
+            r = c["models"][label][j]
+            row = (f"| {t:.3g} | {label} | [{', '.join(f'{v:.2f}' for v in r['q_um'])}] | "
+                   f"{r['predicted_std_um']:.4f} |")
+            if c["truth"]:
+                row += f" {r['true_std_um']:.4f} | {r['true_error_um']:+.4f} | {r['oracle_std_um']:.4f} |"
+            L.append(row)
+    return L + [""]
 
 
 def render_markdown(report: dict) -> str:
@@ -208,6 +246,8 @@ def render_markdown(report: dict) -> str:
         for k, v in g["p_value"].items():
             L.append(f"| {k} | {v:.3g} |")
         L += ["", "![gain](gain.png)", ""]
+    if "control" in report:
+        L += control_markdown(report["control"])
     figs = report.get("figures", {})
     if figs.get("skipped"):
         L += ["", f"_Figures skipped: {figs['skipped']}._"]

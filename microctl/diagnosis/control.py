@@ -1,0 +1,94 @@
+"""What the extended model changes in control terms (the gain section of a diagnosis).
+
+The plain EAFM (the residual GP of eq. 3 on the configured AFM) and the extended EAFM (the same
+on the AFM with the accepted corrections, its noise model using the diagnosed stick-slip
+actuators: :func:`microctl.training.noise_features_for`) are trained on the diagnosed log
+with the package's default residual model, and the default optimal controller (eq. 4) of each
+reaches the same targets in sequence from the zero state. For each chosen pose: the actuator
+commands and the predicted scatter; on a simulated stage also the true scatter and true error
+from the simulator, and the quietest pose that truly reaches the target (the oracle), so the
+report can say whether the extension makes the controller more repeatable, and by how much.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from microctl.afm import AnalyticForwardModel
+from microctl.config import StageConfig
+from microctl.controller import ControllerSettings, OptimalController
+from microctl.diagnosis.data import DiagnosisData
+from microctl.eafm import EAFM
+from microctl.training import ResidualData, ResidualModelSettings, train_residual_model
+
+__all__ = ["TARGET_FRACTIONS", "control_comparison"]
+
+#: Targets as fractions of the largest tool pose both EAFMs reach from the zero state.
+TARGET_FRACTIONS = (0.15, 0.35, 0.55)
+
+
+def _residual_data(data: DiagnosisData, afm: AnalyticForwardModel) -> ResidualData:
+    s_prev = np.column_stack([data.t_prev, data.q_prev])
+    return ResidualData(X=np.hstack([s_prev, data.u]), y=data.t - np.asarray(afm.t_of(data.u)), x_names=())
+
+
+def control_comparison(config: StageConfig, extended: StageConfig, data: DiagnosisData, *, seed: int = 0) -> dict:
+    """Plain vs extended EAFM controller on the same targets (see the module docstring).
+
+    Parameters
+    ----------
+    config : StageConfig
+        The configured stage (the plain EAFM).
+    extended : StageConfig
+        ``extended.yaml``: the stage with the accepted corrections (mean and noise causes).
+    data : DiagnosisData
+        The rows the diagnosis fitted (outliers left out).
+    seed : int
+
+    Returns
+    -------
+    dict
+        ``targets_um`` and, per model (``plain``, ``extended``), per target: ``q_um``,
+        ``predicted_std_um``, ``noise_std_um`` and, on a simulated stage, ``true_std_um``,
+        ``true_error_um``, ``oracle_std_um``; ``truth`` says whether the truth was available.
+    """
+    from microctl.backends.simulated import SimulatedStage
+    from microctl.experiments.oracle import OracleController
+
+    truth = config.backend.kind == "simulated"
+    settings = ControllerSettings()
+    ctrls = {}
+    for label, cfg in (("plain", config), ("extended", extended)):
+        afm = AnalyticForwardModel(cfg.stage)
+        model = train_residual_model(_residual_data(data, afm), afm, ResidualModelSettings(seed=seed))
+        ctrls[label] = OptimalController(EAFM(afm, model), settings)
+    zero = ctrls["plain"].afm.zero_state()
+    # targets both models reach from the zero state, as fractions of the common positive range
+    hi = min(c.reachable_interval(zero)[1] for c in ctrls.values())
+    targets = [float(f * hi) for f in TARGET_FRACTIONS]
+    out: dict = {"targets_um": targets, "truth": truth, "models": {}}
+    for label, ctrl in ctrls.items():
+        rows = []
+        stage = SimulatedStage(config, seed=seed) if truth else None
+        oracle = OracleController(ctrl.afm, stage) if truth else None
+        s = zero
+        prev = None
+        for target in targets:
+            res = ctrl.solve(target, s, u_init=prev)
+            row = {"target_um": target, "q_um": res.q.tolist(), "predicted_std_um": res.predicted_std_um,
+                   "noise_std_um": res.noise_std_um}
+            if truth:
+                row["true_std_um"] = math.sqrt(float(stage.true_var(s, res.u)))
+                row["true_error_um"] = float(stage.true_mean(s, res.u)) - target
+                row["oracle_std_um"] = oracle.solve(target, s).predicted_std_um
+            rows.append(row)
+            s = np.concatenate([[res.predicted_um], res.q])
+            prev = res.u
+        out["models"][label] = rows
+    if truth:
+        plain = np.array([r["true_std_um"] for r in out["models"]["plain"]])
+        ext = np.array([r["true_std_um"] for r in out["models"]["extended"]])
+        out["true_std_ratio_extended_over_plain"] = (ext / plain).tolist()
+    return out
