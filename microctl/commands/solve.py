@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
-from microctl.commands._common import print_json
+from microctl.io import print_json
 from microctl.config import load_stage_config
 from microctl.controller import R_E_SETTINGS, AFMController, ControllerSettings, OptimalController
 from microctl.eafm import EAFM

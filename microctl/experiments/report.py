@@ -23,7 +23,7 @@ import yaml
 from scipy.special import ndtr
 
 from microctl import stats
-from microctl.commands._common import to_jsonable, write_json
+from microctl.io import to_jsonable, write_json
 from microctl.experiments.bars import evaluate_bars
 from microctl.experiments.config import ExperimentConfig
 

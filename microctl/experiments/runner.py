@@ -28,7 +28,7 @@ import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
-from microctl.backends.base import Measurement, StageBackend
+from microctl.backends.base import StageBackend
 from microctl.design import space_filling_moves
 from microctl.config import StageConfig
 from microctl.controller import AFMController, ControlResult, OptimalController
@@ -37,7 +37,7 @@ from microctl.errors import BackendError, SolveError
 from microctl.experiments.config import ExperimentConfig
 from microctl.design import training_moves
 from microctl.experiments.oracle import OracleController
-from microctl.measurement_log import MeasurementLogWriter, read_log
+from microctl.measurement_log import Measurement, MeasurementLogWriter, read_log
 from microctl.progress import Progress
 from microctl.training import noise_summary, residual_dataset, train_residual_model
 
