@@ -245,3 +245,31 @@ def test_short_run_quality(tmp_path):
     assert np.all(np.asarray(inc["afm"]["expected_vsse_um2"]) > 2 * np.asarray(inc["eafm"]["expected_vsse_um2"]))
     assert res["absolute"]["eafm_below_afm_points"] >= 9
     assert set(res["bars"]) >= {"msse_ratio", "vsse_ratio", "eafm_bias", "vsse_vs_oracle", "coverage"}
+
+
+def test_out_on_an_old_run_folder_clears_the_previous_run(tmp_path, capsys):
+    """The files a previous run wrote are removed first (figures: false writes none, so old
+    figures would otherwise survive beside new results); other files are kept; a folder
+    under an output name is refused before any work."""
+    from microctl.commands.experiment import OUTPUTS
+
+    exp = _write(tmp_path, TINY)  # figures: false
+    out = tmp_path / "old_run"
+    out.mkdir()
+    for name in ("fig5_absolute.png", "fig6_incremental.png", "results.json", "report.md"):
+        (out / name).write_text("from the previous run")
+    (out / "my_notes.txt").write_text("keep me")
+    assert main(["experiment", str(exp), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "removed the previous run's" in err and "fig5_absolute.png" in err
+    assert not (out / "fig5_absolute.png").exists() and not (out / "fig6_incremental.png").exists()
+    assert (out / "my_notes.txt").read_text() == "keep me"
+    assert json.loads((out / "results.json").read_text())["incremental"]["trials"] == 3
+    assert {p.name for p in out.iterdir()} <= set(OUTPUTS) | {"my_notes.txt"}
+    # an output name taken by a folder: one line, exit 2, nothing removed or run
+    (out / "model.npz").unlink()
+    (out / "model.npz").mkdir()
+    rc = main(["experiment", str(exp), "--out", str(out), "--quiet"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "'model.npz' is a folder" in lines[0]
+    assert (out / "results.json").is_file()
