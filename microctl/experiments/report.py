@@ -36,6 +36,10 @@ PAPER_TABLE_II = {
 }
 
 
+#: How controllers are named in report.md, the figures and the generated docs.
+CONTROLLER_LABELS = {"afm": "AFM", "eafm": "EAFM", "oracle": "oracle"}
+
+
 def write_config(path: Path, cfg: ExperimentConfig) -> None:
     """``config.yaml``: the resolved experiment and the stage config (for reproduction)."""
     doc = {"experiment": cfg.to_dict(), "stage_config": cfg.stage_config.to_dict()}
@@ -51,6 +55,12 @@ def _test(fn, *args) -> dict | None:
         return None
     d = r.to_dict()
     return d if math.isfinite(d["p_value"]) else {**d, "p_value": None}
+
+
+def _ratio(x: float, y: float) -> float | None:
+    """x / y, or None when y is zero or either is not finite."""
+    x, y = float(x), float(y)
+    return x / y if y != 0 and math.isfinite(x) and math.isfinite(y) else None
 
 
 def incremental_stats(inc: dict) -> dict:
@@ -86,6 +96,7 @@ def incremental_stats(inc: dict) -> dict:
             "welch_abs_sse_afm_vs_eafm": _test(lambda x, y: stats.two_sample_t(x, y, equal_var=False),
                                                np.abs(sse["afm"][:, j]), np.abs(sse["eafm"][:, j])),
             "eafm_msse_within_2se": bool(abs(e["msse_um"][j]) < 2 * e["msse_stderr_um"][j]),
+            "eafm_msse_over_se": _ratio(e["msse_um"][j], e["msse_stderr_um"][j]),
         }
         if "oracle" in sse:
             row["brown_forsythe_oracle_vs_eafm"] = _test(stats.brown_forsythe, sse["oracle"][:, j], sse["eafm"][:, j])
@@ -182,11 +193,81 @@ def _f(x: Any, nd: int = 3) -> str:
     return f"{x:.{nd}f}"
 
 
+def _cell(text: str) -> str:
+    """Text for a Markdown table cell: a literal ``|`` (as in |MSSE|) would split the cell."""
+    return str(text).replace("|", "\\|")
+
+
+def _g(x: float, digits: int = 2) -> str:
+    """A ratio with ``digits`` significant digits, no exponent for ordinary sizes."""
+    x = float(x)
+    if not math.isfinite(x):
+        return "–"
+    return f"{x:.{digits}g}" if 1e-4 <= abs(x) < 1e4 or x == 0 else f"{x:.1e}"
+
+
 def _p(t: dict | None) -> str:
     if t is None or t.get("p_value") is None:
         return "– (undefined)"
     one = t.get("p_one_sided")
     return f"p = {_f(t['p_value'], 4)} (two-sided), {_f(one, 4)} (one-sided, {t['alternative']})"
+
+
+def _accuracy_lines(inc: dict) -> list[str]:
+    """Whether the EAFM's MSSE is distinguishable from zero (|MSSE| >= 2 SE), target by target,
+    and the VSSE ratios (variances are positive estimates: their ratios are meaningful). No
+    ratio over an MSSE that is statistically zero is printed."""
+    T = inc["targets_um"]
+    c = inc["controllers"]
+    e = c["eafm"]
+    zero = [abs(m) < 2 * se for m, se in zip(e["msse_um"], e["msse_stderr_um"])]
+    per = ", ".join(f"{t:g} µm: {m:+.3f} ± {se:.3f} µm" for t, m, se in zip(T, e["msse_um"], e["msse_stderr_um"]))
+    dist = [f"{t:g} µm" for t, z in zip(T, zero) if not z]
+    same = [f"{t:g} µm" for t, z in zip(T, zero) if z]
+    if not dist:
+        verdict = f"not distinguishable from zero at any target (|MSSE| < 2 SE at {', '.join(same)})"
+    elif not same:
+        verdict = f"distinguishable from zero at every target (|MSSE| >= 2 SE at {', '.join(dist)})"
+    else:
+        verdict = (f"distinguishable from zero at {', '.join(dist)} (|MSSE| >= 2 SE), not at {', '.join(same)}")
+    a = c["afm"]
+    afm_se = ", ".join(f"{abs(m) / se:.0f}" if se > 0 else "–" for m, se in zip(a["msse_um"], a["msse_stderr_um"]))
+    r = inc["ratios"]
+    out = [f"Accuracy: the EAFM's MSSE (± its standard error, SE) is {verdict}; per target {per}. "
+           f"The AFM's |MSSE| is {afm_se} SE from zero.", "",
+           "Repeatability: AFM/EAFM VSSE " + ", ".join(_f(v, 1) for v in r["vsse_afm_over_eafm"])
+           + ("; EAFM/oracle VSSE " + ", ".join(_f(v, 2) for v in r["vsse_eafm_over_oracle"])
+              if "vsse_eafm_over_oracle" in r else "") + ".", ""]
+    return out
+
+
+def _scale_lines(cfg: ExperimentConfig, inc: dict) -> list[str]:
+    """How the rig's AFM errors compare in size with the paper's Table II, and whether its
+    VSSE grows with the target as the paper's does (empty when the targets differ)."""
+    T = [float(t) for t in inc["targets_um"]]
+    if T != PAPER_TABLE_II["targets_um"]:
+        return []
+    c = inc["controllers"]
+    P = PAPER_TABLE_II
+    rows = [("AFM MSSE", c["afm"]["msse_um"], P["msse_um"]["afm"]),
+            ("AFM VSSE", c["afm"]["vsse_um2"], P["vsse_um2"]["afm"]),
+            ("EAFM VSSE", c["eafm"]["vsse_um2"], P["vsse_um2"]["eafm"])]
+    L = ["### Scale against the paper", "",
+         "Measured value / the paper's Table II value, per target (1 = the paper's size):", "",
+         "| quantity | " + " | ".join(f"{t:g} µm" for t in T) + " |", "|" + "---|" * (len(T) + 1)]
+    for name, ours, paper in rows:
+        L.append(f"| {name} / paper | " + " | ".join(_g(float(o) / p) for o, p in zip(ours, paper)) + " |")
+    v = [float(x) for x in c["afm"]["vsse_um2"]]
+    pv = P["vsse_um2"]["afm"]
+    grows = all(b > a for a, b in zip(v, v[1:]))
+    ratio = v[-1] / v[0] if v[0] > 0 else float("nan")
+    sim = cfg.stage_config.backend.simulated if cfg.simulated else None
+    gauge = (f" The rig's gauge noise std is {sim.gauge_noise_std_um:g} µm; the paper's gauge repeatability was "
+             "±1 µm." if sim is not None else "")
+    L += ["", f"The AFM's VSSE {'grows' if grows else 'does not grow'} with the target here "
+          f"({_f(v[0])} → {_f(v[-1])} µm², × {_f(ratio, 1)}); the paper's grows {pv[0]:g} → {pv[-1]:g} µm² "
+          f"(× {pv[-1] / pv[0]:.0f}).{gauge}"]
+    return L
 
 
 def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
@@ -206,7 +287,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
         L += ["## Bars", "", f"{sum(b['passed'] for b in bars.values())} of {len(bars)} met "
               "(definitions: docs/experiments.md, microctl/experiments/bars.py).", "",
               "| bar | met | detail |", "|---|---|---|"]
-        L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {b['detail']} |" for k, b in bars.items()]
+        L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {_cell(b['detail'])} |" for k, b in bars.items()]
         L.append("")
     if results["common_random_numbers"]:
         L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "
@@ -235,11 +316,9 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
                     L.append(f"| {metric} (paper) | {name.upper()} | "
                              + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
         L.append("")
-        r = inc["ratios"]
-        L.append("Ratios: AFM/EAFM |MSSE| " + ", ".join(_f(v, 1) for v in r["msse_afm_over_eafm"])
-                 + "; AFM/EAFM VSSE " + ", ".join(_f(v, 1) for v in r["vsse_afm_over_eafm"])
-                 + ("; EAFM/oracle VSSE " + ", ".join(_f(v, 2) for v in r["vsse_eafm_over_oracle"])
-                    if "vsse_eafm_over_oracle" in r else "") + ".")
+        L += _accuracy_lines(inc)
+        scale = _scale_lines(cfg, inc)
+        L += scale + ([""] if scale else [])
         L += ["", "### Tests", "",
               f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
               + _p(inc["tests"]["msse"]),
@@ -252,14 +331,16 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
               "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
               "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
               "Brown–Forsythe test is used.", "",
-              "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM abs(MSSE) < 2 SE |",
-              "|---|---|---|---|---|"]
+              "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM MSSE / SE | "
+              "EAFM MSSE distinguishable from 0 |",
+              "|---|---|---|---|---|---|"]
         for row in inc["tests"]["per_target"]:
             bf = row["brown_forsythe_afm_vs_eafm"]
             we = row["welch_abs_sse_afm_vs_eafm"]
             bo = row.get("brown_forsythe_oracle_vs_eafm")
             L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
-                     f"{_f(bo and bo['p_value'], 4)} | {'yes' if row['eafm_msse_within_2se'] else 'no'} |")
+                     f"{_f(bo and bo['p_value'], 4)} | {_f(row.get('eafm_msse_over_se'), 2)} | "
+                     f"{'no (within 2 SE)' if row['eafm_msse_within_2se'] else 'yes (beyond 2 SE)'} |")
         fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
         if fb:
             L += ["", f"Solver failures replaced by the AFM command: {fb}."]

@@ -441,7 +441,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, quiet: bool = Fals
     run.timings_s["total"] = time.perf_counter() - t_start
     results = report.build_results(cfg, train_info, absolute, incremental, run.timings_s,
                                    {k: v.path.name for k, v in run.recorders.items()})
-    figs = figures.write_figures(out, absolute, incremental) if cfg.figures else []
+    figs = figures.write_figures(out, results, title=f"{Path(cfg.source).name}: ") if cfg.figures else []
     results["figures"] = figs
     report.write_outputs(out, cfg, results)
     return results
