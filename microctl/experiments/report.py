@@ -15,6 +15,7 @@ measurements inside the EAFM's ±2σ band.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -173,6 +174,10 @@ def build_results(cfg: ExperimentConfig, train_info: dict, absolute: dict | None
         "logs": logs,
         "model": "model.npz",
     }
+    if cfg.simulated:
+        sim = cfg.stage_config.backend.simulated
+        res["rig"] = {"gauge_noise_std_um": sim.gauge_noise_std_um, "driver_accuracy_um": sim.driver_accuracy_um,
+                      "effects": sim.effects.to_dict(), "physics": asdict(cfg.stage_config.stage.physics)}
     if incremental is not None:
         res["incremental"] = incremental_stats(incremental)
     if absolute is not None:
@@ -241,9 +246,10 @@ def _accuracy_lines(inc: dict) -> list[str]:
     return out
 
 
-def _scale_lines(cfg: ExperimentConfig, inc: dict) -> list[str]:
+def _scale_lines(results: dict, level: int = 3) -> list[str]:
     """How the rig's AFM errors compare in size with the paper's Table II, and whether its
     VSSE grows with the target as the paper's does (empty when the targets differ)."""
+    inc = results["incremental"]
     T = [float(t) for t in inc["targets_um"]]
     if T != PAPER_TABLE_II["targets_um"]:
         return []
@@ -252,8 +258,9 @@ def _scale_lines(cfg: ExperimentConfig, inc: dict) -> list[str]:
     rows = [("AFM MSSE", c["afm"]["msse_um"], P["msse_um"]["afm"]),
             ("AFM VSSE", c["afm"]["vsse_um2"], P["vsse_um2"]["afm"]),
             ("EAFM VSSE", c["eafm"]["vsse_um2"], P["vsse_um2"]["eafm"])]
-    L = ["### Scale against the paper", "",
+    L = [_h(level, "Scale against the paper"), "",
          "Measured value / the paper's Table II value, per target (1 = the paper's size):", "",
+         "<!-- table: scale -->",
          "| quantity | " + " | ".join(f"{t:g} µm" for t in T) + " |", "|" + "---|" * (len(T) + 1)]
     for name, ours, paper in rows:
         L.append(f"| {name} / paper | " + " | ".join(_g(float(o) / p) for o, p in zip(ours, paper)) + " |")
@@ -261,17 +268,126 @@ def _scale_lines(cfg: ExperimentConfig, inc: dict) -> list[str]:
     pv = P["vsse_um2"]["afm"]
     grows = all(b > a for a, b in zip(v, v[1:]))
     ratio = v[-1] / v[0] if v[0] > 0 else float("nan")
-    sim = cfg.stage_config.backend.simulated if cfg.simulated else None
-    gauge = (f" The rig's gauge noise std is {sim.gauge_noise_std_um:g} µm; the paper's gauge repeatability was "
-             "±1 µm." if sim is not None else "")
+    rig = results.get("rig") or {}
+    gauge = (f" The rig's gauge noise std is {rig['gauge_noise_std_um']:g} µm; the paper's gauge repeatability "
+             "was ±1 µm." if "gauge_noise_std_um" in rig else "")
     L += ["", f"The AFM's VSSE {'grows' if grows else 'does not grow'} with the target here "
           f"({_f(v[0])} → {_f(v[-1])} µm², × {_f(ratio, 1)}); the paper's grows {pv[0]:g} → {pv[-1]:g} µm² "
           f"(× {pv[-1] / pv[0]:.0f}).{gauge}"]
     return L
 
 
+def _h(level: int, text: str) -> str:
+    return "#" * level + " " + text
+
+
+def bars_section(results: dict, level: int = 2) -> list[str]:
+    """The bars table (Markdown lines; empty when no bar could be decided).
+
+    Parameters
+    ----------
+    results : dict
+        The content of results.json.
+    level : int
+        Heading level of the section.
+    """
+    bars = results.get("bars") or {}
+    if not bars:
+        return []
+    L = [_h(level, "Bars"), "", f"{sum(b['passed'] for b in bars.values())} of {len(bars)} met "
+         "(definitions: docs/experiments.md, microctl/experiments/bars.py).", "",
+         "<!-- table: bars -->", "| bar | met | detail |", "|---|---|---|"]
+    L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {_cell(b['detail'])} |" for k, b in bars.items()]
+    return L + [""]
+
+
+def table_ii_lines(inc: dict) -> list[str]:
+    """Table II analogue: MSSE, its SE and VSSE per controller and target, and the paper's rows."""
+    T = inc["targets_um"]
+    L = ["<!-- table: table_ii -->",
+         "| metric | controller | " + " | ".join(f"{t:g} µm" for t in T) + " | unit |", "|" + "---|" * (len(T) + 3)]
+    for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
+                              ("VSSE", "vsse_um2", "µm²")):
+        for name, c in inc["controllers"].items():
+            L.append(f"| {metric} | {CONTROLLER_LABELS.get(name, name)} | "
+                     + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
+    if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
+        for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
+            for name in ("afm", "eafm"):
+                L.append(f"| {metric} (paper) | {CONTROLLER_LABELS[name]} | "
+                         + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
+    return L
+
+
+def incremental_section(results: dict, level: int = 2) -> list[str]:
+    """The incremental experiment: Table II, accuracy against zero, scale against the paper, tests."""
+    inc = results.get("incremental")
+    if inc is None:
+        return []
+    T = inc["targets_um"]
+    L = [_h(level, "Incremental movement (IV-D): Table II"), "",
+         f"{inc['trials']} trials; targets reached in sequence from the zero state; e_s = t_d − t_f.", ""]
+    L += table_ii_lines(inc) + [""]
+    L += _accuracy_lines(inc)
+    scale = _scale_lines(results, level + 1)
+    L += scale + ([""] if scale else [])
+    L += [_h(level + 1, "Tests"), "",
+          f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+          + _p(inc["tests"]["msse"]),
+          f"- VSSE, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+          + _p(inc["tests"]["vsse"]), "",
+          "Per target, the spread of the SSE is compared with the Brown–Forsythe test (Levene's test centred "
+          "on the median). The paper's t-test on the four VSSE values asks whether the *average* variance "
+          "differs across targets, with 3 + 3 degrees of freedom; whether one controller is more repeatable "
+          f"at a given target is a test of equal variances on the {inc['trials']} + {inc['trials']} SSE "
+          "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
+          "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
+          "Brown–Forsythe test is used.", "",
+          "<!-- table: per_target_tests -->",
+          "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM MSSE / SE | "
+          "EAFM MSSE distinguishable from 0 |",
+          "|---|---|---|---|---|---|"]
+    for row in inc["tests"]["per_target"]:
+        bf = row["brown_forsythe_afm_vs_eafm"]
+        we = row["welch_abs_sse_afm_vs_eafm"]
+        bo = row.get("brown_forsythe_oracle_vs_eafm")
+        L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
+                 f"{_f(bo and bo['p_value'], 4)} | {_f(row.get('eafm_msse_over_se'), 2)} | "
+                 f"{'no (within 2 SE)' if row['eafm_msse_within_2se'] else 'yes (beyond 2 SE)'} |")
+    fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
+    if fb:
+        L += ["", f"Solver failures replaced by the AFM command: {fb}."]
+    return L + [""]
+
+
+def absolute_section(results: dict, level: int = 2) -> list[str]:
+    """The absolute experiment: PE of both models, ±2σ coverage, the tests."""
+    ab = results.get("absolute")
+    if ab is None:
+        return []
+    L = [_h(level, "Absolute movement (IV-C)"), "",
+         f"{ab['points']} control signals covering the workspace, each from the zero state "
+         f"(u0, u1, u0, u2, …), {ab['trials']} trials; PE = |t' − prediction| averaged over the trials.", "",
+         f"- mean PE: AFM {_f(ab['mean_pe_um']['afm'])} µm, EAFM {_f(ab['mean_pe_um']['eafm'])} µm; "
+         f"EAFM below AFM at {ab['eafm_below_afm_points']} of {ab['points']} points",
+         f"- measurements inside the EAFM's ±2σ band: {100 * ab['fraction_within_2sigma']:.1f} % "
+         f"(±1σ: {100 * ab['fraction_within_1sigma']:.1f} %)"
+         + (f"; expected under the simulator's true mean and scatter: "
+            f"{100 * ab['expected_fraction_within_2sigma']:.1f} % (95.4 % for a calibrated prediction)"
+            if "expected_fraction_within_2sigma" in ab else ""),
+         "- two-sample t-test (the paper's): " + _p(ab["tests"]["two_sample_t"]),
+         "- paired t-test: " + _p(ab["tests"]["paired_t"]),
+         "- Wilcoxon signed-rank test: " + _p(ab["tests"]["wilcoxon"])]
+    if "mean_error_vs_truth_um" in ab:
+        mt = ab["mean_error_vs_truth_um"]
+        L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
+                 f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
+                 f"{ab['points']} points")
+    return L + [""]
+
+
 def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
-    """report.md: Table II, the tests, the absolute experiment, timings and notes."""
+    """report.md: the bars, Table II, the tests, the absolute experiment, timings and notes."""
     L: list[str] = [f"# Experiment report: {Path(cfg.source).name}", ""]
     tr = cfg.training
     L.append(f"Stage config: `{cfg.stage_path}` (backend: {results['backend']}). "
@@ -282,13 +398,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
              + (f" (kappa {cfg.controller.kappa:g})" if cfg.controller.r_e == "noise_quantile" else "") + "."
              + (f" Seeds offset by {cfg.seed_offset} from the file's." if cfg.seed_offset else ""))
     L.append("")
-    bars = results.get("bars") or {}
-    if bars:
-        L += ["## Bars", "", f"{sum(b['passed'] for b in bars.values())} of {len(bars)} met "
-              "(definitions: docs/experiments.md, microctl/experiments/bars.py).", "",
-              "| bar | met | detail |", "|---|---|---|"]
-        L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {_cell(b['detail'])} |" for k, b in bars.items()]
-        L.append("")
+    L += bars_section(results)
     if results["common_random_numbers"]:
         L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "
                  "seeded identically (incremental seed "
@@ -298,74 +408,8 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
         L.append("The stage could not be reseeded (serial backend): one stage served the whole run, so the "
                  "controllers met different noise.")
     L.append("")
-    inc = results.get("incremental")
-    if inc is not None:
-        T = inc["targets_um"]
-        L += ["## Incremental movement (IV-D): Table II", "",
-              f"{inc['trials']} trials; targets reached in sequence from the zero state; e_s = t_d − t_f.", ""]
-        head = "| metric | controller | " + " | ".join(f"{t:g} µm" for t in T) + " | unit |"
-        L += [head, "|" + "---|" * (len(T) + 3)]
-        for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
-                                  ("VSSE", "vsse_um2", "µm²")):
-            for name, c in inc["controllers"].items():
-                L.append(f"| {metric} | {name.upper() if name != 'oracle' else 'oracle'} | "
-                         + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
-        if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
-            for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
-                for name in ("afm", "eafm"):
-                    L.append(f"| {metric} (paper) | {name.upper()} | "
-                             + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
-        L.append("")
-        L += _accuracy_lines(inc)
-        scale = _scale_lines(cfg, inc)
-        L += scale + ([""] if scale else [])
-        L += ["", "### Tests", "",
-              f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
-              + _p(inc["tests"]["msse"]),
-              f"- VSSE, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
-              + _p(inc["tests"]["vsse"]), "",
-              "Per target, the spread of the SSE is compared with the Brown–Forsythe test (Levene's test centred "
-              "on the median). The paper's t-test on the four VSSE values asks whether the *average* variance "
-              "differs across targets, with 3 + 3 degrees of freedom; whether one controller is more repeatable "
-              f"at a given target is a test of equal variances on the {inc['trials']} + {inc['trials']} SSE "
-              "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
-              "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
-              "Brown–Forsythe test is used.", "",
-              "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM MSSE / SE | "
-              "EAFM MSSE distinguishable from 0 |",
-              "|---|---|---|---|---|---|"]
-        for row in inc["tests"]["per_target"]:
-            bf = row["brown_forsythe_afm_vs_eafm"]
-            we = row["welch_abs_sse_afm_vs_eafm"]
-            bo = row.get("brown_forsythe_oracle_vs_eafm")
-            L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
-                     f"{_f(bo and bo['p_value'], 4)} | {_f(row.get('eafm_msse_over_se'), 2)} | "
-                     f"{'no (within 2 SE)' if row['eafm_msse_within_2se'] else 'yes (beyond 2 SE)'} |")
-        fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
-        if fb:
-            L += ["", f"Solver failures replaced by the AFM command: {fb}."]
-        L.append("")
-    ab = results.get("absolute")
-    if ab is not None:
-        L += ["## Absolute movement (IV-C)", "",
-              f"{ab['points']} control signals covering the workspace, each from the zero state "
-              f"(u0, u1, u0, u2, …), {ab['trials']} trials; PE = |t' − prediction| averaged over the trials.", "",
-              f"- mean PE: AFM {_f(ab['mean_pe_um']['afm'])} µm, EAFM {_f(ab['mean_pe_um']['eafm'])} µm; "
-              f"EAFM below AFM at {ab['eafm_below_afm_points']} of {ab['points']} points",
-              f"- measurements inside the EAFM's ±2σ band: {100 * ab['fraction_within_2sigma']:.1f} % "
-              f"(±1σ: {100 * ab['fraction_within_1sigma']:.1f} %)"
-              + (f"; expected under the simulator's true mean and scatter: "
-                 f"{100 * ab['expected_fraction_within_2sigma']:.1f} % (95.4 % for a calibrated prediction)"
-                 if "expected_fraction_within_2sigma" in ab else ""),
-              "- two-sample t-test (the paper's): " + _p(ab["tests"]["two_sample_t"]),
-              "- paired t-test: " + _p(ab["tests"]["paired_t"]),
-              "- Wilcoxon signed-rank test: " + _p(ab["tests"]["wilcoxon"])]
-        if "mean_error_vs_truth_um" in ab:
-            mt = ab["mean_error_vs_truth_um"]
-            L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
-                     f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
-                     f"{ab['points']} points")
-        L.append("")
+    L += incremental_section(results)
+    L += absolute_section(results)
     tm = results["timings_s"]
     L += ["## Timings", "", ", ".join(f"{k}: {v:.1f} s" for k, v in tm.items()), ""]
     if results.get("figures"):
