@@ -15,8 +15,8 @@ and one marker each.
   trial, one panel per target, one marker per controller, side by side (horizontal offsets)
   so a controller that coincides with another stays visible, with the MSSE as a line. Top
   row: every controller on one y scale shared by all targets (so 1 µm at 7 µm and 5 µm at
-  28 µm look their size); bottom row: EAFM and oracle only, again on one shared scale, to
-  show the scatter the top row's scale hides.
+  28 µm look their size); bottom row: the controllers other than the AFM (EAFM, oracle),
+  again on one shared scale, to show the scatter the top row's scale hides.
 """
 
 from __future__ import annotations
@@ -131,6 +131,7 @@ def figure_fig6(incremental: dict, title: str = ""):
     J, T = len(targets), int(incremental["trials"])
     quiet = [n for n in ctrls if n != "afm"]
     rows = 2 if quiet else 1
+    zoomed = " and ".join(_label(n) for n in quiet)
     fig, axes = plt.subplots(rows, J, figsize=(3.3 * J + 0.6, 3.2 * rows + 1.0), squeeze=False,
                              sharey="row", layout="constrained")
     trials = np.arange(1, T + 1)
@@ -151,12 +152,12 @@ def figure_fig6(incremental: dict, title: str = ""):
             if r == 0:
                 ax.set_title(f"target $t_d$ = {t:g} µm")
             if j == 0:
-                ax.set_ylabel("$e_s = t_d - t_f$ (µm)" if r == 0 else "$e_s$, EAFM and oracle (µm)")
+                ax.set_ylabel("$e_s = t_d - t_f$ (µm)" if r == 0 else f"$e_s$, {zoomed} (µm)")
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside upper right", ncol=len(labels), fontsize=9,
                title="markers: one trial each (side by side); line: MSSE", title_fontsize=8)
     fig.suptitle(f"{title}Incremental movement (Fig. 6 analogue): steady-state error per trial, {T} trials\n"
-                 + ("top: every controller on one scale; bottom: EAFM and oracle zoomed (one scale)" if rows == 2
+                 + (f"top: every controller on one scale; bottom: {zoomed} zoomed (one scale)" if rows == 2
                     else "one scale for every target"), fontsize=10, x=0.02, ha="left")
     return fig
 
