@@ -75,29 +75,37 @@ def _structure(tabs: dict[str, list[list[str]]], skip_labels: tuple[str, ...] = 
     return out
 
 
-@pytest.fixture(scope="module")
-def tiny_results(tmp_path_factory):
-    """A seeded run small enough for seconds, with the paper's targets and all three controllers
-    (so every section and every bar the main job reports is produced)."""
-    from microctl.experiments.config import load_experiment_config
-    from microctl.experiments.runner import run_experiment
-
-    d = tmp_path_factory.mktemp("docs")
-    doc = {"stage": str(ROOT / "configs/stage/sim_paper.yaml"),
-           "training": {"moves": 20, "restarts": 1, "max_iter": 60},
-           "absolute": {"points": 3, "trials": 2},
-           "incremental": {"targets_um": [7, 14, 21, 28], "trials": 3},
-           "oracle": {"grid": 9, "line_points": 15, "zooms": 1}, "figures": False}
-    (d / "exp.yaml").write_text(yaml.safe_dump(doc))
-    return run_experiment(load_experiment_config(d / "exp.yaml"), d / "out", quiet=True)
+#: Generated experiment page -> the experiment file reproduce.py runs for it.
+PAGES = {"main_job.md": reproduce.MAIN_JOB, "paper_scale.md": reproduce.PAPER_SCALE}
+_TINY: dict[str, dict] = {}
 
 
-@pytest.mark.parametrize("page", ["main_job.md", "paper_scale.md"])
-def test_experiment_pages_match_the_code(page, tiny_results):
+def tiny_results(page: str, tmp_path_factory) -> dict:
+    """A seeded run of the page's experiment (its stage, controllers and targets), small enough
+    for seconds, so every section, table row and bar the page reports is produced."""
+    if page not in _TINY:
+        from microctl.experiments.config import load_experiment_config
+        from microctl.experiments.runner import run_experiment
+
+        exp_path = ROOT / PAGES[page]
+        full = yaml.safe_load(exp_path.read_text())
+        d = tmp_path_factory.mktemp("docs")
+        doc = {"stage": str((exp_path.parent / full["stage"]).resolve()), "controllers": full["controllers"],
+               "training": {"moves": 20, "restarts": 1, "max_iter": 60},
+               "absolute": {"points": 3, "trials": 2},
+               "incremental": {"targets_um": full["incremental"]["targets_um"], "trials": 3},
+               "oracle": {"grid": 9, "line_points": 15, "zooms": 1}, "figures": False}
+        (d / "exp.yaml").write_text(yaml.safe_dump(doc))
+        _TINY[page] = run_experiment(load_experiment_config(d / "exp.yaml"), d / "out", quiet=True)
+    return _TINY[page]
+
+
+@pytest.mark.parametrize("page", sorted(PAGES))
+def test_experiment_pages_match_the_code(page, tmp_path_factory):
     text = _page(page)
     assert text.startswith(reproduce.BANNER.split("`")[0]), "not written by scripts/reproduce.py"
     got = _structure(tables(text))
-    want = _structure(tables("\n".join(reproduce.experiment_markdown(tiny_results))))
+    want = _structure(tables("\n".join(reproduce.experiment_markdown(tiny_results(page, tmp_path_factory)))))
     for name, (header, labels) in want.items():
         assert name in got, f"{page}: table '{name}' missing; rerun python scripts/reproduce.py"
         assert got[name][0] == header, f"{page}: table '{name}' header differs from the code's"
@@ -107,10 +115,10 @@ def test_experiment_pages_match_the_code(page, tiny_results):
         assert (GENERATED / img).is_file(), img
 
 
-def test_paper_scale_offsets_match_the_code(tiny_results):
+def test_paper_scale_offsets_match_the_code(tmp_path_factory):
     text = _page("paper_scale.md")
     got = tables(text)
-    want = tables("\n".join(reproduce.offsets_markdown([(0, tiny_results)])))
+    want = tables("\n".join(reproduce.offsets_markdown([(0, tiny_results("paper_scale.md", tmp_path_factory))])))
     for name in ("seed_offsets", "offset_summary"):
         assert got[name][0] == want[name][0], f"paper_scale.md: table '{name}' header differs from the code's"
     quantities = {r[1] for r in got["seed_offsets"][1:]}
