@@ -27,10 +27,32 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
-from microctl.backends.base import Measurement
 from microctl.config import Stage
 from microctl.errors import DataError, MicroctlError
 from microctl.tabular import parse_number, read_table
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The result of one executed move.
+
+    Attributes
+    ----------
+    t_um : float
+        Tool pose read by the gauge after settling, µm, relative to the zero state.
+    q_um : ndarray, shape (n_q,)
+        Actuator displacements sent to the drivers, µm.
+    u : ndarray, shape (n_p,)
+        The control signal (platform pose) commanded, µm / mrad.
+    time_s : float
+        Seconds since the start of the run when the move had settled.
+    """
+
+    t_um: float
+    q_um: np.ndarray
+    u: np.ndarray
+    time_s: float
+
 
 #: How far a logged actuator command may lie outside its ``range_um`` (``*_prev``: outside its
 #: ``limit_um``) and how far it may differ from K u of the logged control signal, µm: the

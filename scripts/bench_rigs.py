@@ -246,6 +246,90 @@ def print_table(table: list[dict], n_rigs: int) -> None:
               f"{t['afm_ratio_median']:>10.2f} {t['fit_s_median']:>6.2f} {t['solve_ms_median']:>8.1f}")
 
 
+#: Columns of the rig table in Markdown: (summary key, header, format); the header row and the
+#: row labels (n, method) are what tests/test_docs.py compares with docs/generated/bench_rigs.md.
+RIG_COLUMNS = (
+    ("n", "n (moves)", "{}"), ("method", "method", "{}"),
+    ("rigs_pass", "rigs passing", None), ("rigs_std_pass", "std ok", None), ("rigs_err_pass", "err ok", None),
+    ("ratio_median", "true std / oracle, median", "{:.2f}"), ("ratio_p90", "p90", "{:.2f}"),
+    ("ratio_max", "max", "{:.2f}"),
+    ("err_median_um", "abs true error median (µm)", "{:.3f}"), ("err_p90_um", "p90 (µm)", "{:.3f}"),
+    ("err_max_um", "max (µm)", "{:.3f}"),
+    ("cal_pass", "calibration ok", None), ("cal_median", "true / predicted std, median", "{:.2f}"),
+    ("cal_min", "min", "{:.2f}"), ("cal_max", "max", "{:.2f}"),
+    ("afm_ratio_median", "AFM std / oracle, median", "{:.2f}"), ("fit_s_median", "fit (s), median", "{:.2f}"),
+    ("solve_ms_median", "solve (ms), median", "{:.1f}"),
+)
+
+
+def rig_table_markdown(table: list[dict]) -> list[str]:
+    """The rig summary as a Markdown table (one row per size and method)."""
+    L = ["<!-- table: rigs -->", "| " + " | ".join(h for _, h, _ in RIG_COLUMNS) + " |",
+         "|" + "---|" * len(RIG_COLUMNS)]
+    for t in table:
+        cells = []
+        for key, _, fmt in RIG_COLUMNS:
+            if fmt is None:  # a pass count: "k/N"
+                total = t["cal_n"] if key == "cal_pass" else t["rigs"]
+                cells.append(f"{t[key]}/{total}")
+            else:
+                cells.append(fmt.format(t[key]))
+        L.append("| " + " | ".join(cells) + " |")
+    return L
+
+
+def seed_set_columns() -> list[str]:
+    """Header of the seed-set table: the set, its seed offset, every bar, all bars, time."""
+    from microctl.experiments.bars import BARS
+
+    return ["set", "seed offset", *BARS, "all", "time (s)"]
+
+
+def seed_sets_markdown(sets: list[dict]) -> list[str]:
+    """The main job over seed sets as a Markdown table, a pass-count row and the failures."""
+    from microctl.experiments.bars import BARS
+
+    cols = seed_set_columns()
+    L = ["<!-- table: seed_sets -->", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in sets:
+        cells = [str(r["set"]), str(r["offset"])]
+        cells += [("yes" if r["bars"][b]["passed"] else "NO") if b in r["bars"] else "–" for b in BARS]
+        cells += ["yes" if all(b["passed"] for b in r["bars"].values()) else "NO", f"{r['time_s']:.1f}"]
+        L.append("| " + " | ".join(cells) + " |")
+    n = len(sets)
+    met = [f"{sum(r['bars'][b]['passed'] for r in sets if b in r['bars'])}/{sum(b in r['bars'] for r in sets)}"
+           if any(b in r["bars"] for r in sets) else "–" for b in BARS]
+    met_all = f"{sum(all(b['passed'] for b in r['bars'].values()) for r in sets)}/{n}"
+    L.append("| met on | " + " | ".join(["", *met, met_all, ""]) + " |")
+    fails = [f"- set {r['set']}: `{b}`: {d['detail']}" for r in sets for b, d in r["bars"].items() if not d["passed"]]
+    if fails:
+        L += ["", "Bars not met:", ""] + fails
+    return L
+
+
+def markdown(table: list[dict], sets: list[dict], n_rigs: int, header: str, wall_s: float,
+             experiment: str | Path = MAIN_JOB) -> str:
+    """Everything the run measured, as Markdown (``--markdown FILE``)."""
+    L = [header, ""]
+    if sets:
+        exp = Path(experiment).resolve()
+        root = Path(__file__).resolve().parents[1]
+        shown = exp.relative_to(root) if exp.is_relative_to(root) else exp
+        L += [f"### The main job over {len(sets)} seed sets", "",
+              f"`{shown}` run with every seed shifted by {SEED_SET_STRIDE} k "
+              "(k = 1..N, `microctl experiment --seed-offset`); each bar of docs/experiments.md evaluated "
+              "(microctl/experiments/bars.py). Bar: every bar on >= 9 of 10 sets.", ""]
+        L += seed_sets_markdown(sets) + [""]
+    if table:
+        L += [f"### Random rigs ({n_rigs})", "",
+              f"Rigs passing = at every target true std <= {STD_BAR} x the oracle's AND |true error| <= "
+              f"{ERR_BAR_UM} µm (bar: >= 90 % of rigs at n = 200); calibration = true / predicted std in "
+              f"{list(CAL_BAR)} (bar: >= 90 % of rig-targets). Targets {list(TARGETS_UM)} µm in sequence.", ""]
+        L += rig_table_markdown(table) + [""]
+    L += [f"Wall time {wall_s:.0f} s.", ""]
+    return "\n".join(L)
+
+
 def run_seed_set(k: int, experiment: str) -> dict:
     """The main job with every seed shifted by SEED_SET_STRIDE * k; its bars and timings."""
     from microctl.experiments.config import load_experiment_config
@@ -288,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--verbose", action="store_true", help="print every rig-target")
     ap.add_argument("--seed-sets", type=int, default=0, help="also run the main job over this many seed sets")
     ap.add_argument("--experiment", default=str(MAIN_JOB), help="experiment file for --seed-sets")
+    ap.add_argument("--markdown", metavar="FILE", help="also write the tables as Markdown (docs/generated/)")
     args = ap.parse_args(argv)
     sizes = tuple(int(s) for s in args.sizes.split(","))
     methods = tuple(m.strip() for m in args.methods.split(","))
@@ -295,10 +380,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
     seeds = [args.seed + k for k in range(args.rigs)]
-    print(f"machine: {platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpu, Python "
-          f"{platform.python_version()}, numpy {np.__version__}; {args.rigs} rigs (seeds {args.seed}.."
-          f"{args.seed + args.rigs - 1}), sizes {list(sizes)}, methods {list(methods)}, targets {list(TARGETS_UM)} µm, "
-          f"{args.seed_sets} main-job seed sets, jobs {args.jobs}")
+    header = (f"machine: {platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpu, Python "
+              f"{platform.python_version()}, numpy {np.__version__}; {args.rigs} rigs (seeds {args.seed}.."
+              f"{args.seed + args.rigs - 1}), sizes {list(sizes)}, methods {list(methods)}, targets "
+              f"{list(TARGETS_UM)} µm, {args.seed_sets} main-job seed sets, jobs {args.jobs}")
+    print(header)
     t0 = time.perf_counter()
     sets: list[dict] = []
     if args.seed_sets:
@@ -335,7 +421,10 @@ def main(argv: list[str] | None = None) -> int:
     if results:
         print_table(table, len(seeds))
         print(f"\nredrawn rigs (a ball lifted off): {sum(r['redraws'] > 0 for r in results)}")
-    print(f"wall time {time.perf_counter() - t0:.0f} s")
+    wall = time.perf_counter() - t0
+    print(f"wall time {wall:.0f} s")
+    if args.markdown:
+        Path(args.markdown).write_text(markdown(table, sets, len(seeds), header, wall, args.experiment))
     if args.json:
         Path(args.json).write_text(json.dumps({"summary": table, "rigs": results, "seed_sets": sets}, indent=1,
                                               default=float))

@@ -45,8 +45,8 @@ from microctl.eafm import EAFM, bind_to_stage  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
 from microctl.collect import execute_moves  # noqa: E402
 from microctl.design import training_moves  # noqa: E402
-from microctl.training import (ResidualData, ResidualModelSettings, fixed_hyperparameter_model,  # noqa: E402
-                               train_residual_model)
+from microctl.testing import fixed_hyperparameter_model  # noqa: E402
+from microctl.training import ResidualData, ResidualModelSettings, train_residual_model  # noqa: E402
 from microctl.vhgpr import VHGPR  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

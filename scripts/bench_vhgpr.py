@@ -31,8 +31,8 @@ import numpy as np
 
 from microctl.vhgpr import VHGPR
 
-#: shared/ sits beside the repository: the motorcycle benchmark data
-MCYCLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mcycle.csv"
+#: the motorcycle benchmark data, shipped with the tests (tests/data/README.md)
+MCYCLE = Path(__file__).resolve().parents[1] / "tests" / "data" / "mcycle.csv"
 
 
 def planted(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-SHARED = ROOT.parent / "shared"
+DATA = ROOT / "tests" / "data"  # shipped test data (tests/data/README.md); nothing outside the repository is read
 
 
 @pytest.fixture

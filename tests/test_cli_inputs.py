@@ -195,7 +195,7 @@ def test_environment_oserror_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
     import errno
     import json as _json
 
-    from microctl.commands import _common
+    from microctl import io as mio
 
     target = tmp_path / "results.json"
     target.write_text("{}\n")
@@ -205,7 +205,7 @@ def test_environment_oserror_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(Path, "write_text", full)
     with pytest.raises(OSError):
-        _common.write_json(target, {"a": 1})
+        mio.write_json(target, {"a": 1})
     monkeypatch.undo()
     assert _json.loads(target.read_text()) == {} and not (tmp_path / "results.json.tmp").exists()
 

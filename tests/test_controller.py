@@ -16,7 +16,7 @@ from microctl.config import load_stage_config
 from microctl.controller import (AFMController, ControllerSettings, EAFMMeanController, OptimalController)
 from microctl.eafm import EAFM, bind_to_stage
 from microctl.errors import ConfigError, UnreachableTargetError
-from microctl.training import fixed_hyperparameter_model
+from microctl.testing import fixed_hyperparameter_model
 
 ROOT = Path(__file__).resolve().parents[1]
 WELL = (0.5, -0.3)  # planted low-noise region in (rx, ry), mrad: it crosses every target's redundant set

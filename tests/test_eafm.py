@@ -13,7 +13,8 @@ from microctl.afm import AnalyticForwardModel
 from microctl.config import load_stage_config
 from microctl.eafm import EAFM, bind_to_stage
 from microctl.errors import ConfigError
-from microctl.training import actuator_step_features, fixed_hyperparameter_model
+from microctl.testing import fixed_hyperparameter_model
+from microctl.training import actuator_step_features
 import microctl.vhgpr as vh
 from microctl.vhgpr import VHGPR
 

@@ -68,7 +68,10 @@ def test_results_fields(quick_run):
     assert set(inc["p_value"]) == {"msse", "vsse"}
     ab = res["absolute"]
     assert len(ab["pe_um"]["afm"]) == 3 and len(ab["pe_um"]["eafm"]) == 3
-    assert "p_value" in ab and 0.0 <= ab["fraction_within_2sigma"] <= 1.0
+    # the coverage the report states is the one of the logged measurements and predictions
+    meas, mean, std = (np.asarray(ab[k]) for k in ("measured_um", "eafm_mean_um", "eafm_std_um"))
+    assert ab["fraction_within_2sigma"] == pytest.approx(np.mean(np.abs(meas - mean) <= 2 * std))
+    assert ab["p_value"] == ab["tests"]["two_sample_t"]["p_value"]
     for f in ("report.md", "config.yaml", "model.npz", "training_log.csv", "absolute_log.csv",
               "incremental_log.csv"):
         assert (out / f).is_file(), f
@@ -245,3 +248,74 @@ def test_short_run_quality(tmp_path):
     assert np.all(np.asarray(inc["afm"]["expected_vsse_um2"]) > 2 * np.asarray(inc["eafm"]["expected_vsse_um2"]))
     assert res["absolute"]["eafm_below_afm_points"] >= 9
     assert set(res["bars"]) >= {"msse_ratio", "vsse_ratio", "eafm_bias", "vsse_vs_oracle", "coverage"}
+
+
+def test_out_on_an_old_run_folder_clears_the_previous_run(tmp_path, capsys):
+    """The files a previous run wrote are removed first (figures: false writes none, so old
+    figures would otherwise survive beside new results); other files are kept; a folder
+    under an output name is refused before any work."""
+    from microctl.commands.experiment import OUTPUTS
+
+    exp = _write(tmp_path, TINY)  # figures: false
+    out = tmp_path / "old_run"
+    out.mkdir()
+    for name in ("fig5_absolute.png", "fig6_incremental.png", "results.json", "report.md"):
+        (out / name).write_text("from the previous run")
+    (out / "my_notes.txt").write_text("keep me")
+    assert main(["experiment", str(exp), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "removed the previous run's" in err and "fig5_absolute.png" in err
+    assert not (out / "fig5_absolute.png").exists() and not (out / "fig6_incremental.png").exists()
+    assert (out / "my_notes.txt").read_text() == "keep me"
+    assert json.loads((out / "results.json").read_text())["incremental"]["trials"] == 3
+    assert {p.name for p in out.iterdir()} <= set(OUTPUTS) | {"my_notes.txt"}
+    # an output name taken by a folder: one line, exit 2, nothing removed or run
+    (out / "model.npz").unlink()
+    (out / "model.npz").mkdir()
+    rc = main(["experiment", str(exp), "--out", str(out), "--quiet"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "'model.npz' is a folder" in lines[0]
+    assert (out / "results.json").is_file()
+
+
+def test_figures_show_every_controller_with_units(quick_run):
+    """Fig. 6: one y scale per row, every controller drawn (markers side by side, so a
+    controller coinciding with another stays visible); Fig. 5: no line joins the unrelated
+    absolute points, the band is ±2σ; every axis names its unit."""
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from microctl.experiments.figures import figure_fig5, figure_fig6
+
+    _, res = quick_run
+    fig = figure_fig6(res["incremental"])
+    axes = np.array(fig.axes).reshape(2, -1)
+    assert len({ax.get_ylim() for ax in axes[0]}) == 1 and len({ax.get_ylim() for ax in axes[1]}) == 1
+    for ax in axes[0]:
+        marks = {ln.get_label(): ln for ln in ax.get_lines() if ln.get_marker() not in ("None", "", None)}
+        assert set(marks) == {"AFM", "EAFM", "oracle"}
+        x0 = {name: float(ln.get_xdata()[0]) for name, ln in marks.items()}
+        assert len(set(x0.values())) == 3  # side by side, never on top of each other
+    for ax in fig.axes:
+        assert "µm" in ax.get_ylabel() or not ax.get_ylabel()
+        assert "trial" in ax.get_xlabel() and "unit" in ax.get_xlabel()
+    plt.close(fig)
+    fig = figure_fig5(res["absolute"])
+    a, b, c = fig.axes[:3]
+    for ln in a.get_lines():
+        if len(ln.get_xdata()) > 2:
+            assert ln.get_linestyle() == "None", ln.get_label()  # markers only
+    ab = res["absolute"]
+    band = [cont for cont in a.containers if "2σ" in str(cont.get_label())]
+    assert band, "the EAFM band is labelled ±2σ"
+    seg = band[0].lines[2][0].get_segments()[0]  # one error bar: mean ± 2 std of the first point in x order
+    order = np.argsort(ab["afm_um"])
+    half = abs(seg[1][1] - seg[0][1]) / 2
+    assert half == pytest.approx(2 * np.nanmean(np.asarray(ab["eafm_std_um"]), axis=0)[order][0])
+    for ax in (a, b, c):
+        assert "(µm)" in ax.get_ylabel() or "(σ)" in ax.get_ylabel()
+    assert "no unit" in c.get_xlabel()
+    plt.close(fig)

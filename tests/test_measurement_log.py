@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 from microctl.afm import inverse_kinematics_matrix
-from microctl.backends.base import Measurement
 from microctl.config import load_stage_config
 from microctl.errors import DataError
-from microctl.measurement_log import MeasurementLogWriter, log_columns, read_log
+from microctl.measurement_log import Measurement, MeasurementLogWriter, log_columns, read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = load_stage_config(ROOT / "configs/stage/table1.yaml").stage

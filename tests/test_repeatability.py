@@ -26,8 +26,8 @@ from microctl.controller import ControllerSettings, OptimalController, Redundant
 from microctl.design import training_moves
 from microctl.eafm import EAFM, bind_to_stage
 from microctl.experiments.oracle import OracleController
-from microctl.training import (ResidualModelSettings, fixed_hyperparameter_model, noise_summary,
-                               residual_dataset, train_residual_model)
+from microctl.testing import fixed_hyperparameter_model
+from microctl.training import ResidualModelSettings, noise_summary, residual_dataset, train_residual_model
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)

@@ -28,7 +28,8 @@ from microctl.experiments.oracle import OracleController, OracleSequenceControll
 from microctl.experiments.runner import run_experiment
 from microctl.objectives import NoiseVariance
 from microctl.sequence import SequenceController
-from microctl.training import actuator_step_features, fixed_hyperparameter_model
+from microctl.testing import fixed_hyperparameter_model
+from microctl.training import actuator_step_features
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE1 = ROOT / "configs/stage/table1.yaml"
@@ -464,7 +465,7 @@ def test_experiment_runs_the_sequence_controllers(tmp_path):
         err = np.abs(np.asarray(c["true_mean_um"]) - np.array([7.0, 14.0]))
         assert np.all(err <= (1e-6 if name == "oracle_sequence" else 0.2))
     text = (tmp_path / "out" / "report.md").read_text()
-    assert "EAFM_SEQUENCE" in text and "ORACLE_SEQUENCE" in text
+    assert "EAFM sequence" in text and "oracle sequence" in text
 
 
 def test_experiment_config_accepts_the_sequence_controllers(tmp_path):

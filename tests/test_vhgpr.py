@@ -24,8 +24,8 @@ from microctl.kernels import KernelSpec
 from microctl.noise_prior import NoiseFeatures
 from microctl.vhgpr import FORMAT_VERSION, VHGPR, FittedVHGPR, VHGPRPrediction, ard_se
 
-# shared/ sits beside the repository (here and in CI): the motorcycle benchmark data
-MCYCLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mcycle.csv"
+# the motorcycle benchmark data, shipped with the tests (tests/data/README.md)
+MCYCLE = Path(__file__).resolve().parent / "data" / "mcycle.csv"
 
 
 def _mcycle() -> tuple[np.ndarray, np.ndarray]:
@@ -411,7 +411,7 @@ def test_cli_fit_predict_round_trip(tmp_path: Path) -> None:
     Xq = np.linspace(0, 1, 9)
     _write_csv(query, ["other", "u"], [[1, x] for x in Xq])
     out = tmp_path / "pred.csv"
-    assert main(["gp", "predict", str(model_path), str(query), "-o", str(out)]) == 0
+    assert main(["gp", "predict", str(model_path), str(query), "--out", str(out)]) == 0
     with out.open() as fh:
         rows = list(csv.reader(fh))
     assert rows[0] == ["mean", "var"] and len(rows) == 1 + Xq.size
@@ -419,6 +419,22 @@ def test_cli_fit_predict_round_trip(tmp_path: Path) -> None:
     p = model.predict(Xq[:, None])
     np.testing.assert_array_equal(got[:, 0], p.y_mean)
     np.testing.assert_array_equal(got[:, 1], p.y_var)
+    # -o/--out as every other command; --output still accepted (hidden alias), the same file
+    alias = tmp_path / "pred_alias.csv"
+    assert main(["gp", "predict", str(model_path), str(query), "--output", str(alias)]) == 0
+    assert alias.read_text() == out.read_text()
+
+
+def test_cli_gp_out_is_required_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``gp fit`` without -o/--out, or with both --out and the --output alias: one line, exit 2."""
+    data = tmp_path / "d.csv"
+    _write_csv(data, ["a", "b"], [[0, 1], [1, 2], [2, 2]])
+    for extra, needle in (([], "one of the arguments -o/--out is required"),
+                          (["--out", "a.npz", "--output", "b.npz"], "not allowed with argument -o/--out")):
+        with pytest.raises(SystemExit) as exc:
+            main(["gp", "fit", str(data), "--x", "a", "--y", "b", *extra])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and len(err) == 1 and needle in err[0]
 
 
 def test_cli_input_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,39 +11,18 @@ range; it is never clipped and never executed in part.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
 
 import numpy as np
 
 from microctl.afm import inverse_kinematics_matrix, tool_vector
 from microctl.config import StageConfig
 from microctl.errors import BackendError
+# Measurement lives beside the log that records it; re-exported here for compatibility.
+from microctl.measurement_log import Measurement  # noqa: F401
 
 #: Commands this close outside a range (round-off of K u at a bound) are snapped onto the
 #: bound; anything further out is refused. Nothing outside a range is ever sent.
 RANGE_TOLERANCE_UM = 1e-9
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """The result of one executed move.
-
-    Attributes
-    ----------
-    t_um : float
-        Tool pose read by the gauge after settling, µm, relative to the zero state.
-    q_um : ndarray, shape (n_q,)
-        Actuator displacements sent to the drivers, µm.
-    u : ndarray, shape (n_p,)
-        The control signal (platform pose) commanded, µm / mrad.
-    time_s : float
-        Seconds since the start of the run when the move had settled.
-    """
-
-    t_um: float
-    q_um: np.ndarray
-    u: np.ndarray
-    time_s: float
 
 
 class StageBackend(abc.ABC):

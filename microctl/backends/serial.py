@@ -32,7 +32,8 @@ import time
 
 import numpy as np
 
-from microctl.backends.base import Measurement, StageBackend
+from microctl.backends.base import StageBackend
+from microctl.measurement_log import Measurement
 from microctl.config import StageConfig
 from microctl.errors import BackendError, ConfigError
 from microctl.tabular import NUMBER_PATTERN

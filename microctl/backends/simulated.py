@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from microctl.backends.base import Measurement, StageBackend
+from microctl.backends.base import StageBackend
+from microctl.measurement_log import Measurement
 from microctl.config import StageConfig
 from microctl.errors import BackendError
 from microctl.extended import ExtendedForwardModel, ExtendedPrediction

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-import numpy as np
-
 from microctl.errors import ConfigError
+# The JSON helpers live in microctl.io (the library must not import the CLI package); they are
+# re-exported here for modules not yet moved over (microctl.diagnosis.report).
+from microctl.io import print_json, to_jsonable, write_json  # noqa: F401
 
 
 def add_quiet(parser: argparse.ArgumentParser) -> None:
@@ -95,40 +94,3 @@ def check_output_dir(path: str | Path, flag: str, inputs: Mapping[str, str | Pat
     except OSError as exc:
         raise ConfigError(f"{flag} {path}: cannot write there: {exc.strerror or exc}") from None
     return path
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Convert NumPy scalars/arrays (recursively) into plain JSON types."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
-def print_json(obj: Any) -> None:
-    """Print ``obj`` as indented JSON on stdout."""
-    json.dump(to_jsonable(obj), sys.stdout, indent=2)
-    sys.stdout.write("\n")
-
-
-def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` (atomically: temp file then rename).
-
-    On failure (a full disk) the temp file is removed and ``path`` is left as it was; the
-    ``OSError`` propagates (the command line reports it in one line, exit status 1).
-    """
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise

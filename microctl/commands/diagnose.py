@@ -1,6 +1,6 @@
 """``microctl diagnose LOG.csv --config STAGE.yaml [--holdout LOG2.csv] --out DIR``.
 
-Answers the four questions of shared/spec/diagnosis.md (show, name, extend, gain) and
+Answers the four questions of docs/diagnosis.md (show, name, extend, gain) and
 writes DIR/report.json, DIR/report.md, the figures and DIR/extended.yaml.
 """
 
@@ -17,8 +17,10 @@ from microctl.config import load_stage_config
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``diagnose`` command."""
-    p = subparsers.add_parser("diagnose", help="find what the stage model gets wrong, name the cause, extend the model")
-    p.add_argument("log", help="measurement log (CSV, shared/spec/measurement-log.md)")
+    p = subparsers.add_parser("diagnose", help="find what the stage model gets wrong, name the cause, extend the model",
+                              description="Find what the stage model gets wrong, name the physical cause, write the "
+                              "extended model and measure the gain (docs/diagnosis.md).")
+    p.add_argument("log", help="measurement log (CSV, docs/measurement-log.md)")
     p.add_argument("--config", required=True, help="stage YAML file the data is compared with")
     p.add_argument("--holdout", help="second measurement log for the held-out gain (default: 5-fold cross-validation)")
     p.add_argument("--out", required=True, help="output directory (created)")

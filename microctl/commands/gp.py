@@ -1,7 +1,9 @@
 """``microctl gp fit`` and ``microctl gp predict``: the VHGPR trainer on any CSV table.
 
-    microctl gp fit DATA.csv --x COL[,COL..] --y COL -o GP.npz [--restarts N] [--seed S] [--bias] [--quiet]
-    microctl gp predict GP.npz DATA.csv -o PRED.csv
+    microctl gp fit DATA.csv --x COL[,COL..] --y COL -o/--out GP.npz [--restarts N] [--seed S] [--bias] [--quiet]
+    microctl gp predict GP.npz DATA.csv -o/--out PRED.csv
+
+(``--output`` is accepted as a hidden alias of ``--out``.)
 
 ``predict`` writes the columns ``mean,var`` (var includes the input-dependent noise), one
 row per input row, in the same order; it reads the input columns by the names stored in
@@ -36,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("data", type=Path, metavar="DATA.csv", help="CSV file with a header row")
     fit.add_argument("--x", required=True, metavar="COL[,COL..]", help="input column(s), comma-separated")
     fit.add_argument("--y", required=True, metavar="COL", help="output column")
-    fit.add_argument("-o", "--output", required=True, type=Path, metavar="GP.npz", help="model file to write")
+    _add_out(fit, "GP.npz", "model file to write")
     fit.add_argument("--restarts", type=_positive_int, default=2, metavar="N",
                      help="optimisation runs in total, the first from a homoscedastic GP (default 2)")
     add_seed(fit, "seed of the restarts (default 0)")
@@ -48,8 +50,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           description="Write mean,var of the predictive distribution of y for each row.")
     pred.add_argument("model", type=Path, metavar="GP.npz", help="model written by 'gp fit'")
     pred.add_argument("data", type=Path, metavar="DATA.csv", help="CSV file with the model's input columns")
-    pred.add_argument("-o", "--output", required=True, type=Path, metavar="PRED.csv", help="CSV file to write")
+    _add_out(pred, "PRED.csv", "CSV file to write")
     pred.set_defaults(func=_predict)
+
+
+def _add_out(parser: argparse.ArgumentParser, metavar: str, help_text: str) -> None:
+    """``-o/--out FILE`` (required), as every other command; ``--output`` is a hidden alias
+    kept for scripts written before the name was made consistent."""
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("-o", "--out", type=Path, metavar=metavar, help=help_text)
+    group.add_argument("--output", dest="out", type=Path, help=argparse.SUPPRESS)
 
 
 def _positive_int(text: str) -> int:
@@ -79,7 +89,7 @@ def _fit(args: argparse.Namespace) -> int:
     y_col = args.y.strip()
     if y_col in x_cols:
         raise DataError(f"--y '{y_col}' is also an input column in --x")
-    check_output_file(args.output, "-o", {"the data file DATA.csv": args.data})
+    check_output_file(args.out, "-o", {"the data file DATA.csv": args.data})
     table = read_table(args.data, min_rows=2)
     X = table.numeric_columns(x_cols)
     y = table.numeric(y_col)
@@ -90,19 +100,19 @@ def _fit(args: argparse.Namespace) -> int:
             raise DataError(f"{args.data}: {exc}") from None
         progress.step(info=f"bound {model.bound:.4g}")
     model = dataclasses.replace(model, x_names=tuple(x_cols), y_name=y_col)
-    model.save(args.output)
+    model.save(args.out)
     info = model.info
     print(f"fitted VHGPR to {X.shape[0]} rows of {args.data} ({', '.join(x_cols)} -> {y_col})")
     print(f"  bound {model.bound:.6g}   runs {info['restarts_tried']} ({info['restarts_failed']} failed)"
           f"   iterations {info['iterations']}   time {info['time_s']:.2f} s")
-    print(f"  wrote {args.output}")
+    print(f"  wrote {args.out}")
     return 0
 
 
 def _predict(args: argparse.Namespace) -> int:
     from microctl.vhgpr import FittedVHGPR
 
-    check_output_file(args.output, "-o", {"the model file GP.npz": args.model, "the data file DATA.csv": args.data})
+    check_output_file(args.out, "-o", {"the model file GP.npz": args.model, "the data file DATA.csv": args.data})
     model = FittedVHGPR.load(args.model)
     if not model.x_names:
         raise DataError(f"{args.model}: the model does not record its input column names")
@@ -111,9 +121,9 @@ def _predict(args: argparse.Namespace) -> int:
     pred = model.predict(X)
     text = "mean,var\n" + "".join(f"{float(m)!r},{float(v)!r}\n" for m, v in zip(pred.y_mean, pred.y_var))
     try:
-        args.output.write_text(text)
+        args.out.write_text(text)
     except OSError as exc:  # the folder was checked: this is the machine (full disk, I/O error), exit 1
-        raise MicroctlError(f"{args.output}: cannot write: {exc.strerror or exc}") from None
+        raise MicroctlError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
     return 0
 
 

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 
 from microctl.afm import AnalyticForwardModel
-from microctl.commands._common import print_json
+from microctl.io import print_json
 from microctl.config import load_stage_config
 from microctl.controller import (R_E_SETTINGS, SEQUENCE_OBJECTIVES, AFMController, ControllerSettings,
                                  OptimalController, compare_noise)

@@ -6,7 +6,7 @@ import argparse
 
 
 from microctl.afm import AnalyticForwardModel, contact_map, hinge_jacobian
-from microctl.commands._common import print_json
+from microctl.io import print_json
 from microctl.config import load_stage_config
 
 _UNITS = {"x": "µm", "y": "µm", "z": "µm", "rx": "mrad", "ry": "mrad", "rz": "mrad"}

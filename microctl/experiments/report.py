@@ -15,6 +15,7 @@ measurements inside the EAFM's ±2σ band.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,7 @@ import yaml
 from scipy.special import ndtr
 
 from microctl import stats
-from microctl.commands._common import to_jsonable, write_json
+from microctl.io import to_jsonable, write_json
 from microctl.experiments.bars import evaluate_bars
 from microctl.experiments.config import ExperimentConfig
 
@@ -34,6 +35,11 @@ PAPER_TABLE_II = {
     "vsse_um2": {"afm": [0.3, 3.1, 4.5, 8.0], "eafm": [0.14, 0.15, 0.5, 3.5]},
     "p_value": {"msse": 0.01, "vsse": 0.07, "absolute_pe": 1e-6},
 }
+
+
+#: How controllers are named in report.md, the figures and the generated docs.
+CONTROLLER_LABELS = {"afm": "AFM", "eafm": "EAFM", "oracle": "oracle", "eafm_sequence": "EAFM sequence",
+                     "oracle_sequence": "oracle sequence"}
 
 
 def write_config(path: Path, cfg: ExperimentConfig) -> None:
@@ -51,6 +57,12 @@ def _test(fn, *args) -> dict | None:
         return None
     d = r.to_dict()
     return d if math.isfinite(d["p_value"]) else {**d, "p_value": None}
+
+
+def _ratio(x: float, y: float) -> float | None:
+    """x / y, or None when y is zero or either is not finite."""
+    x, y = float(x), float(y)
+    return x / y if y != 0 and math.isfinite(x) and math.isfinite(y) else None
 
 
 def incremental_stats(inc: dict) -> dict:
@@ -90,6 +102,7 @@ def incremental_stats(inc: dict) -> dict:
             "welch_abs_sse_afm_vs_eafm": _test(lambda x, y: stats.two_sample_t(x, y, equal_var=False),
                                                np.abs(sse["afm"][:, j]), np.abs(sse["eafm"][:, j])),
             "eafm_msse_within_2se": bool(abs(e["msse_um"][j]) < 2 * e["msse_stderr_um"][j]),
+            "eafm_msse_over_se": _ratio(e["msse_um"][j], e["msse_stderr_um"][j]),
         }
         if "oracle" in sse:
             row["brown_forsythe_oracle_vs_eafm"] = _test(stats.brown_forsythe, sse["oracle"][:, j], sse["eafm"][:, j])
@@ -166,6 +179,10 @@ def build_results(cfg: ExperimentConfig, train_info: dict, absolute: dict | None
         "logs": logs,
         "model": "model.npz",
     }
+    if cfg.simulated:
+        sim = cfg.stage_config.backend.simulated
+        res["rig"] = {"gauge_noise_std_um": sim.gauge_noise_std_um, "driver_accuracy_um": sim.driver_accuracy_um,
+                      "effects": sim.effects.to_dict(), "physics": asdict(cfg.stage_config.stage.physics)}
     if incremental is not None:
         res["incremental"] = incremental_stats(incremental)
     if absolute is not None:
@@ -186,6 +203,19 @@ def _f(x: Any, nd: int = 3) -> str:
     return f"{x:.{nd}f}"
 
 
+def _cell(text: str) -> str:
+    """Text for a Markdown table cell: a literal ``|`` (as in |MSSE|) would split the cell."""
+    return str(text).replace("|", "\\|")
+
+
+def _g(x: float, digits: int = 2) -> str:
+    """A ratio with ``digits`` significant digits, no exponent for ordinary sizes."""
+    x = float(x)
+    if not math.isfinite(x):
+        return "–"
+    return f"{x:.{digits}g}" if 1e-4 <= abs(x) < 1e4 or x == 0 else f"{x:.1e}"
+
+
 def _p(t: dict | None) -> str:
     if t is None or t.get("p_value") is None:
         return "– (undefined)"
@@ -193,8 +223,176 @@ def _p(t: dict | None) -> str:
     return f"p = {_f(t['p_value'], 4)} (two-sided), {_f(one, 4)} (one-sided, {t['alternative']})"
 
 
+def _accuracy_lines(inc: dict) -> list[str]:
+    """Whether the EAFM's MSSE is distinguishable from zero (|MSSE| >= 2 SE), target by target,
+    and the VSSE ratios (variances are positive estimates: their ratios are meaningful). No
+    ratio over an MSSE that is statistically zero is printed."""
+    T = inc["targets_um"]
+    c = inc["controllers"]
+    e = c["eafm"]
+    zero = [abs(m) < 2 * se for m, se in zip(e["msse_um"], e["msse_stderr_um"])]
+    per = ", ".join(f"{t:g} µm: {m:+.3f} ± {se:.3f} µm" for t, m, se in zip(T, e["msse_um"], e["msse_stderr_um"]))
+    dist = [f"{t:g} µm" for t, z in zip(T, zero) if not z]
+    same = [f"{t:g} µm" for t, z in zip(T, zero) if z]
+    if not dist:
+        verdict = f"not distinguishable from zero at any target (|MSSE| < 2 SE at {', '.join(same)})"
+    elif not same:
+        verdict = f"distinguishable from zero at every target (|MSSE| >= 2 SE at {', '.join(dist)})"
+    else:
+        verdict = (f"distinguishable from zero at {', '.join(dist)} (|MSSE| >= 2 SE), not at {', '.join(same)}")
+    a = c["afm"]
+    afm_se = ", ".join(f"{abs(m) / se:.0f}" if se > 0 else "–" for m, se in zip(a["msse_um"], a["msse_stderr_um"]))
+    r = inc["ratios"]
+    out = [f"Accuracy: the EAFM's MSSE (± its standard error, SE) is {verdict}; per target {per}. "
+           f"The AFM's |MSSE| is {afm_se} SE from zero.", "",
+           "Repeatability: AFM/EAFM VSSE " + ", ".join(_f(v, 1) for v in r["vsse_afm_over_eafm"])
+           + ("; EAFM/oracle VSSE " + ", ".join(_f(v, 2) for v in r["vsse_eafm_over_oracle"])
+              if "vsse_eafm_over_oracle" in r else "") + ".", ""]
+    return out
+
+
+def _scale_lines(results: dict, level: int = 3) -> list[str]:
+    """How the rig's AFM errors compare in size with the paper's Table II, and whether its
+    VSSE grows with the target as the paper's does (empty when the targets differ)."""
+    inc = results["incremental"]
+    T = [float(t) for t in inc["targets_um"]]
+    if T != PAPER_TABLE_II["targets_um"]:
+        return []
+    c = inc["controllers"]
+    P = PAPER_TABLE_II
+    rows = [("AFM MSSE", c["afm"]["msse_um"], P["msse_um"]["afm"]),
+            ("AFM VSSE", c["afm"]["vsse_um2"], P["vsse_um2"]["afm"]),
+            ("EAFM VSSE", c["eafm"]["vsse_um2"], P["vsse_um2"]["eafm"])]
+    L = [_h(level, "Scale against the paper"), "",
+         "Measured value / the paper's Table II value, per target (1 = the paper's size):", "",
+         "<!-- table: scale -->",
+         "| quantity | " + " | ".join(f"{t:g} µm" for t in T) + " |", "|" + "---|" * (len(T) + 1)]
+    for name, ours, paper in rows:
+        L.append(f"| {name} / paper | " + " | ".join(_g(float(o) / p) for o, p in zip(ours, paper)) + " |")
+    v = [float(x) for x in c["afm"]["vsse_um2"]]
+    pv = P["vsse_um2"]["afm"]
+    grows = all(b > a for a, b in zip(v, v[1:]))
+    ratio = v[-1] / v[0] if v[0] > 0 else float("nan")
+    rig = results.get("rig") or {}
+    gauge = (f" The rig's gauge noise std is {rig['gauge_noise_std_um']:g} µm; the paper's gauge repeatability "
+             "was ±1 µm." if "gauge_noise_std_um" in rig else "")
+    L += ["", f"The AFM's VSSE {'grows' if grows else 'does not grow'} with the target here "
+          f"({_f(v[0])} → {_f(v[-1])} µm², × {_f(ratio, 1)}); the paper's grows {pv[0]:g} → {pv[-1]:g} µm² "
+          f"(× {pv[-1] / pv[0]:.0f}).{gauge}"]
+    return L
+
+
+def _h(level: int, text: str) -> str:
+    return "#" * level + " " + text
+
+
+def bars_section(results: dict, level: int = 2) -> list[str]:
+    """The bars table (Markdown lines; empty when no bar could be decided).
+
+    Parameters
+    ----------
+    results : dict
+        The content of results.json.
+    level : int
+        Heading level of the section.
+    """
+    bars = results.get("bars") or {}
+    if not bars:
+        return []
+    L = [_h(level, "Bars"), "", f"{sum(b['passed'] for b in bars.values())} of {len(bars)} met "
+         "(definitions: docs/experiments.md, microctl/experiments/bars.py).", "",
+         "<!-- table: bars -->", "| bar | met | detail |", "|---|---|---|"]
+    L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {_cell(b['detail'])} |" for k, b in bars.items()]
+    return L + [""]
+
+
+def table_ii_lines(inc: dict) -> list[str]:
+    """Table II analogue: MSSE, its SE and VSSE per controller and target, and the paper's rows."""
+    T = inc["targets_um"]
+    L = ["<!-- table: table_ii -->",
+         "| metric | controller | " + " | ".join(f"{t:g} µm" for t in T) + " | unit |", "|" + "---|" * (len(T) + 3)]
+    for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
+                              ("VSSE", "vsse_um2", "µm²")):
+        for name, c in inc["controllers"].items():
+            L.append(f"| {metric} | {CONTROLLER_LABELS.get(name, name)} | "
+                     + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
+    if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
+        for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
+            for name in ("afm", "eafm"):
+                L.append(f"| {metric} (paper) | {CONTROLLER_LABELS[name]} | "
+                         + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
+    return L
+
+
+def incremental_section(results: dict, level: int = 2) -> list[str]:
+    """The incremental experiment: Table II, accuracy against zero, scale against the paper, tests."""
+    inc = results.get("incremental")
+    if inc is None:
+        return []
+    T = inc["targets_um"]
+    L = [_h(level, "Incremental movement (IV-D): Table II"), "",
+         f"{inc['trials']} trials; targets reached in sequence from the zero state; e_s = t_d − t_f.", ""]
+    L += table_ii_lines(inc) + [""]
+    L += _accuracy_lines(inc)
+    scale = _scale_lines(results, level + 1)
+    L += scale + ([""] if scale else [])
+    L += [_h(level + 1, "Tests"), "",
+          f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+          + _p(inc["tests"]["msse"]),
+          f"- VSSE, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
+          + _p(inc["tests"]["vsse"]), "",
+          "Per target, the spread of the SSE is compared with the Brown–Forsythe test (Levene's test centred "
+          "on the median). The paper's t-test on the four VSSE values asks whether the *average* variance "
+          "differs across targets, with 3 + 3 degrees of freedom; whether one controller is more repeatable "
+          f"at a given target is a test of equal variances on the {inc['trials']} + {inc['trials']} SSE "
+          "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
+          "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
+          "Brown–Forsythe test is used.", "",
+          "<!-- table: per_target_tests -->",
+          "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM MSSE / SE | "
+          "EAFM MSSE distinguishable from 0 |",
+          "|---|---|---|---|---|---|"]
+    for row in inc["tests"]["per_target"]:
+        bf = row["brown_forsythe_afm_vs_eafm"]
+        we = row["welch_abs_sse_afm_vs_eafm"]
+        bo = row.get("brown_forsythe_oracle_vs_eafm")
+        L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
+                 f"{_f(bo and bo['p_value'], 4)} | {_f(row.get('eafm_msse_over_se'), 2)} | "
+                 f"{'no (within 2 SE)' if row['eafm_msse_within_2se'] else 'yes (beyond 2 SE)'} |")
+    fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
+    if fb:
+        L += ["", f"Solver failures replaced by the AFM command: {fb}."]
+    return L + [""]
+
+
+def absolute_section(results: dict, level: int = 2) -> list[str]:
+    """The absolute experiment: PE of both models, ±2σ coverage, the tests."""
+    ab = results.get("absolute")
+    if ab is None:
+        return []
+    L = [_h(level, "Absolute movement (IV-C)"), "",
+         f"{ab['points']} control signals covering the workspace, each from the zero state "
+         f"(u0, u1, u0, u2, …), {ab['trials']} trials; PE = |t' − prediction| averaged over the trials.", "",
+         f"- mean PE: AFM {_f(ab['mean_pe_um']['afm'])} µm, EAFM {_f(ab['mean_pe_um']['eafm'])} µm; "
+         f"EAFM below AFM at {ab['eafm_below_afm_points']} of {ab['points']} points",
+         f"- measurements inside the EAFM's ±2σ band: {100 * ab['fraction_within_2sigma']:.1f} % "
+         f"(±1σ: {100 * ab['fraction_within_1sigma']:.1f} %)"
+         + (f"; expected under the simulator's true mean and scatter: "
+            f"{100 * ab['expected_fraction_within_2sigma']:.1f} % (95.4 % for a calibrated prediction)"
+            if "expected_fraction_within_2sigma" in ab else ""),
+         "- two-sample t-test (the paper's): " + _p(ab["tests"]["two_sample_t"]),
+         "- paired t-test: " + _p(ab["tests"]["paired_t"]),
+         "- Wilcoxon signed-rank test: " + _p(ab["tests"]["wilcoxon"])]
+    if "mean_error_vs_truth_um" in ab:
+        mt = ab["mean_error_vs_truth_um"]
+        L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
+                 f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
+                 f"{ab['points']} points")
+    return L + [""]
+
+
 def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
-    """report.md: Table II, the tests, the absolute experiment, timings and notes."""
+    """report.md: the bars, Table II, the tests, the absolute experiment, timings and notes."""
     L: list[str] = [f"# Experiment report: {Path(cfg.source).name}", ""]
     tr = cfg.training
     L.append(f"Stage config: `{cfg.stage_path}` (backend: {results['backend']}). "
@@ -205,13 +403,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
              + (f" (kappa {cfg.controller.kappa:g})" if cfg.controller.r_e == "noise_quantile" else "") + "."
              + (f" Seeds offset by {cfg.seed_offset} from the file's." if cfg.seed_offset else ""))
     L.append("")
-    bars = results.get("bars") or {}
-    if bars:
-        L += ["## Bars", "", f"{sum(b['passed'] for b in bars.values())} of {len(bars)} met "
-              "(definitions: docs/experiments.md, microctl/experiments/bars.py).", "",
-              "| bar | met | detail |", "|---|---|---|"]
-        L += [f"| {k} | {'yes' if b['passed'] else 'NO'} | {b['detail']} |" for k, b in bars.items()]
-        L.append("")
+    L += bars_section(results)
     if results["common_random_numbers"]:
         L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "
                  "seeded identically (incremental seed "
@@ -221,74 +413,8 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
         L.append("The stage could not be reseeded (serial backend): one stage served the whole run, so the "
                  "controllers met different noise.")
     L.append("")
-    inc = results.get("incremental")
-    if inc is not None:
-        T = inc["targets_um"]
-        L += ["## Incremental movement (IV-D): Table II", "",
-              f"{inc['trials']} trials; targets reached in sequence from the zero state; e_s = t_d − t_f.", ""]
-        head = "| metric | controller | " + " | ".join(f"{t:g} µm" for t in T) + " | unit |"
-        L += [head, "|" + "---|" * (len(T) + 3)]
-        for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
-                                  ("VSSE", "vsse_um2", "µm²")):
-            for name, c in inc["controllers"].items():
-                L.append(f"| {metric} | {name.upper() if name != 'oracle' else 'oracle'} | "
-                         + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
-        if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
-            for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
-                for name in ("afm", "eafm"):
-                    L.append(f"| {metric} (paper) | {name.upper()} | "
-                             + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
-        L.append("")
-        r = inc["ratios"]
-        L.append("Ratios: AFM/EAFM |MSSE| " + ", ".join(_f(v, 1) for v in r["msse_afm_over_eafm"])
-                 + "; AFM/EAFM VSSE " + ", ".join(_f(v, 1) for v in r["vsse_afm_over_eafm"])
-                 + ("; EAFM/oracle VSSE " + ", ".join(_f(v, 2) for v in r["vsse_eafm_over_oracle"])
-                    if "vsse_eafm_over_oracle" in r else "") + ".")
-        L += ["", "### Tests", "",
-              f"- |MSSE|, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
-              + _p(inc["tests"]["msse"]),
-              f"- VSSE, AFM vs EAFM (the paper's Student two-sample t-test over the {len(T)} targets): "
-              + _p(inc["tests"]["vsse"]), "",
-              "Per target, the spread of the SSE is compared with the Brown–Forsythe test (Levene's test centred "
-              "on the median). The paper's t-test on the four VSSE values asks whether the *average* variance "
-              "differs across targets, with 3 + 3 degrees of freedom; whether one controller is more repeatable "
-              f"at a given target is a test of equal variances on the {inc['trials']} + {inc['trials']} SSE "
-              "values. The classical F-test for that is exact only for normal errors and badly anti-conservative "
-              "otherwise; stick-slip scatter is heavy-tailed and mixes zero and large steps, so the robust "
-              "Brown–Forsythe test is used.", "",
-              "| target | B–F AFM vs EAFM p | Welch on abs(e_s) p | B–F oracle vs EAFM p | EAFM abs(MSSE) < 2 SE |",
-              "|---|---|---|---|---|"]
-        for row in inc["tests"]["per_target"]:
-            bf = row["brown_forsythe_afm_vs_eafm"]
-            we = row["welch_abs_sse_afm_vs_eafm"]
-            bo = row.get("brown_forsythe_oracle_vs_eafm")
-            L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
-                     f"{_f(bo and bo['p_value'], 4)} | {'yes' if row['eafm_msse_within_2se'] else 'no'} |")
-        fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
-        if fb:
-            L += ["", f"Solver failures replaced by the AFM command: {fb}."]
-        L.append("")
-    ab = results.get("absolute")
-    if ab is not None:
-        L += ["## Absolute movement (IV-C)", "",
-              f"{ab['points']} control signals covering the workspace, each from the zero state "
-              f"(u0, u1, u0, u2, …), {ab['trials']} trials; PE = |t' − prediction| averaged over the trials.", "",
-              f"- mean PE: AFM {_f(ab['mean_pe_um']['afm'])} µm, EAFM {_f(ab['mean_pe_um']['eafm'])} µm; "
-              f"EAFM below AFM at {ab['eafm_below_afm_points']} of {ab['points']} points",
-              f"- measurements inside the EAFM's ±2σ band: {100 * ab['fraction_within_2sigma']:.1f} % "
-              f"(±1σ: {100 * ab['fraction_within_1sigma']:.1f} %)"
-              + (f"; expected under the simulator's true mean and scatter: "
-                 f"{100 * ab['expected_fraction_within_2sigma']:.1f} % (95.4 % for a calibrated prediction)"
-                 if "expected_fraction_within_2sigma" in ab else ""),
-              "- two-sample t-test (the paper's): " + _p(ab["tests"]["two_sample_t"]),
-              "- paired t-test: " + _p(ab["tests"]["paired_t"]),
-              "- Wilcoxon signed-rank test: " + _p(ab["tests"]["wilcoxon"])]
-        if "mean_error_vs_truth_um" in ab:
-            mt = ab["mean_error_vs_truth_um"]
-            L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
-                     f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
-                     f"{ab['points']} points")
-        L.append("")
+    L += incremental_section(results)
+    L += absolute_section(results)
     tm = results["timings_s"]
     L += ["## Timings", "", ", ".join(f"{k}: {v:.1f} s" for k, v in tm.items()), ""]
     if results.get("figures"):

@@ -28,7 +28,7 @@ import numpy as np
 
 from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
-from microctl.backends.base import Measurement, StageBackend
+from microctl.backends.base import StageBackend
 from microctl.design import space_filling_moves
 from microctl.config import StageConfig
 from microctl.controller import AFMController, ControlResult, OptimalController
@@ -38,7 +38,7 @@ from microctl.experiments.config import ExperimentConfig
 from microctl.design import training_moves
 from microctl.experiments.oracle import OracleController, OracleSequenceController
 from microctl.sequence import SequenceController
-from microctl.measurement_log import MeasurementLogWriter, read_log
+from microctl.measurement_log import Measurement, MeasurementLogWriter, read_log
 from microctl.progress import Progress
 from microctl.training import noise_summary, residual_dataset, train_residual_model
 
@@ -495,7 +495,7 @@ def run_experiment(cfg: ExperimentConfig, out: str | Path, *, quiet: bool = Fals
     run.timings_s["total"] = time.perf_counter() - t_start
     results = report.build_results(cfg, train_info, absolute, incremental, run.timings_s,
                                    {k: v.path.name for k, v in run.recorders.items()})
-    figs = figures.write_figures(out, absolute, incremental) if cfg.figures else []
+    figs = figures.write_figures(out, results, title=f"{Path(cfg.source).name}: ") if cfg.figures else []
     results["figures"] = figs
     report.write_outputs(out, cfg, results)
     return results
