@@ -22,7 +22,7 @@ Tables printed:
    Named correctly when the first accepted mean cause, or one of its ``equivalent`` entries,
    is the planted cause on the planted actuator (noise plants: no mean cause and
    ``actuator_friction`` on the planted actuator). Parameters are checked on the matching
-   entry against :func:`microctl.diagnosis.plant.parameter_bar` when the data resolve the bar
+   entry against :func:`microctl.testing.plant.parameter_bar` when the data resolve the bar
    (3σ ≤ bar). Extra causes named besides the planted one are counted.
 2. *Clean*: no defect; any accepted mean cause or ``significant`` is a false positive.
 3. *Off-vocabulary*: a smooth bump, a periodic error in one input, a thermal drift with a time
@@ -56,7 +56,7 @@ from microctl.cli import main as cli_main  # noqa: E402
 from microctl.config import load_stage_config  # noqa: E402
 from microctl.diagnosis.data import data_from_arrays, data_from_log  # noqa: E402
 from microctl.diagnosis.pipeline import run_diagnosis  # noqa: E402
-from microctl.diagnosis.plant import parameter_bar  # noqa: E402
+from microctl.testing.plant import parameter_bar  # noqa: E402
 from microctl.measurement_log import read_log  # noqa: E402
 
 SHORT = {"actuator_gain": "gain", "contact_offset": "c_off", "tool_offset": "t_off", "sensor_scale": "scale",

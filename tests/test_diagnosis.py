@@ -2,7 +2,7 @@
 
 Data: the simulated stage with sim_paper.yaml's noise (gauge and driver noise) and its
 effects replaced by the planted one, which the diagnosis is not told about. The actuator and
-magnitude are drawn by :func:`microctl.diagnosis.plant.random_cause` with a fixed seed per
+magnitude are drawn by :func:`microctl.testing.plant.random_cause` with a fixed seed per
 cause. Tolerances are stated next to each assertion from the standard errors seen.
 """
 
@@ -16,8 +16,8 @@ import pytest
 
 from microctl.config import ActuatorFriction, ActuatorGain, Effects, load_stage_config
 from microctl.diagnosis.pipeline import run_diagnosis
-from microctl.diagnosis.plant import compression_um as _compression
-from microctl.diagnosis.plant import parameter_bar, random_cause, simulate, with_noise_of
+from microctl.testing.plant import compression_um as _compression
+from microctl.testing.plant import parameter_bar, random_cause, simulate, with_noise_of
 
 from conftest import CONFIGS
 

@@ -22,7 +22,7 @@ from microctl.cli import main
 from microctl.config import Effects, Physics, load_stage_config
 from microctl.diagnosis.data import data_from_arrays
 from microctl.diagnosis.pipeline import run_diagnosis
-from microctl.diagnosis.plant import parameter_bar
+from microctl.testing.plant import parameter_bar
 from microctl.extended import ExtendedForwardModel
 
 from conftest import CONFIGS

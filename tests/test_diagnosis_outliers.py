@@ -114,7 +114,7 @@ def test_flexible_term_leave_one_out_with_gp_equals_conditioning_on_the_others()
 @pytest.fixture(scope="module")
 def offset_diagnosis():
     from microctl.diagnosis.pipeline import run_diagnosis
-    from microctl.diagnosis.plant import simulate
+    from microctl.testing.plant import simulate
 
     cfg = load_stage_config(CONFIGS / "stage" / "table1.yaml")
     data = simulate(cfg, Effects(contact_offset=(ContactOffset(2, 1.0, -0.5),), actuator_gain=(ActuatorGain(3, 0.95),)),

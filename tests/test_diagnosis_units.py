@@ -21,7 +21,7 @@ from microctl.config import (
 from microctl.diagnosis.causes import CauseSpec, candidate_specs, fit_mean, merge_effects
 from microctl.diagnosis.data import data_from_arrays
 from microctl.diagnosis.noise import fit_noise
-from microctl.diagnosis.plant import simulate, with_effects
+from microctl.testing.plant import simulate, with_effects
 from microctl.diagnosis.residuals import breusch_pagan, generic_basis, structure_f_test
 from microctl.extended import ExtendedForwardModel
 from microctl.backends.simulated import SimulatedStage

@@ -9,9 +9,6 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from microctl.errors import ConfigError
-# The JSON helpers live in microctl.io (the library must not import the CLI package); they are
-# re-exported here for modules not yet moved over (microctl.diagnosis.report).
-from microctl.io import print_json, to_jsonable, write_json  # noqa: F401
 
 
 def add_quiet(parser: argparse.ArgumentParser) -> None:

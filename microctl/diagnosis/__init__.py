@@ -13,7 +13,6 @@
 - :mod:`~microctl.diagnosis.gain`: held-out gain of afm, afm_gp, extended, extended_gp;
 - :mod:`~microctl.diagnosis.report`, :mod:`~microctl.diagnosis.figures`: outputs;
 - :mod:`~microctl.diagnosis.pipeline`: :func:`run_diagnosis`, all of it;
-- :mod:`~microctl.diagnosis.plant`: simulated runs with a planted cause (tests, scripts).
 """
 
 from microctl.diagnosis.data import DiagnosisData, data_from_arrays, data_from_log

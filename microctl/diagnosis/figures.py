@@ -51,10 +51,12 @@ def _residuals(plt, dg, path: Path) -> Path:
     ax = ax_list[len(vars_)]
     n_q = data.direction.shape[1]
     for i in range(n_q):
-        for s, x in ((1, i + 0.15), (-1, i - 0.15)):
+        for s, x, color, label in ((1, i + 0.15, "tab:red", "up"), (-1, i - 0.15, "tab:purple", "down")):
             r = dg.afm_residual[data.direction[:, i] == s]
             if r.size:
-                ax.errorbar([x], [r.mean()], yerr=[r.std() / np.sqrt(r.size) * 2], fmt="^" if s > 0 else "v")
+                ax.errorbar([x], [r.mean()], yerr=[r.std() / np.sqrt(r.size) * 2], fmt="^" if s > 0 else "v",
+                            color=color, label=label if i == 0 else None)
+    ax.legend(fontsize=7, title="approached", title_fontsize=7, loc="best", framealpha=0.6)
     ax.set_xticks(range(n_q))
     ax.set_xticklabels(stage.actuator_names)
     ax.set_xlabel("actuator: mean by direction of approach (▲ up, ▼ down), ±2 s.e.")
@@ -85,31 +87,46 @@ def _causes(plt, dg, path: Path) -> Path:
     ax.set_yticklabels(labels, fontsize=7)
     ax.invert_yaxis()
     ax.axvline(0, color="k", lw=0.5)
-    ax.set_xlabel("ΔBIC (dimensionless): model with the cause − model it was added to; negative: the cause pays")
-    ax.set_ylabel("cause (green: accepted)")
+    ax.set_xlabel("ΔBIC (dimensionless; symmetric log axis, linear within ±10):\n"
+                  "model with the cause − model it was added to; negative: the cause pays")
+    ax.set_ylabel("cause (green: accepted, orange: withdrawn)")
     ax.set_xscale("symlog", linthresh=10)
+    ax.set_title("Which cause pays: ΔBIC of each candidate")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
+#: Display names of the gain's models (the report's keys stay as the spec names them).
+GAIN_LABELS = {"afm": "AFM", "afm_gp": "AFM + GP\n(the EAFM)", "extended": "extended", "extended_gp": "extended\n+ GP"}
+
+
 def _gain(plt, dg, path: Path) -> Path:
     """Held-out RMSE of the four models and the error distributions."""
     g = dg.gain
     names = list(g.rmse_um)
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
-    a1.bar(names, [g.rmse_um[k] for k in names], color="tab:blue")
+    labels = [GAIN_LABELS.get(k, k) for k in names]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    # a dot per model on a log axis (a bar's length from an arbitrary log baseline means nothing)
+    vals = [g.rmse_um[k] for k in names]
+    a1.plot(range(len(names)), vals, "o", color="tab:blue", ms=8)
+    for i, v in enumerate(vals):
+        a1.annotate(f"{v:.3g}", (i, v), textcoords="offset points", xytext=(8, 0), va="center", fontsize=8)
+    a1.set_xticks(range(len(names)))
+    a1.set_xticklabels(labels)
+    a1.set_xlim(-0.5, len(names) - 0.3)
     a1.set_xlabel("model")
-    a1.set_ylabel("held-out RMSE (µm)")
+    a1.set_ylabel("held-out RMSE (µm, log axis)")
     a1.set_yscale("log")
-    a1.set_title(g.method)
+    a1.set_title(f"Held-out RMSE ({g.method})")
     a2.boxplot([np.abs(g.errors[k]) for k in names], showfliers=False)
     a2.set_xticks(range(1, len(names) + 1))
-    a2.set_xticklabels(names)
+    a2.set_xticklabels(labels)
     a2.set_xlabel("model")
-    a2.set_ylabel("held-out abs(error) (µm)")
+    a2.set_ylabel("held-out abs(error) (µm, log axis)")
     a2.set_yscale("log")
+    a2.set_title("Per-move held-out errors (box: quartiles)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from microctl.commands._common import to_jsonable, write_json
+from microctl.io import to_jsonable, write_json
 
 #: Extra measurement that tells apart causes a single scalar gauge cannot (docs/diagnosis.md).
 SEPARATING_MEASUREMENT = {

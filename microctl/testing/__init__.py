@@ -1,5 +1,8 @@
 """Fixtures for tests and benchmarks (not used by the package at run time).
 
+:mod:`microctl.testing.plant` simulates runs of the package's stage with a planted cause (the
+diagnosis's own hidden-effect tests; the independent generator is ``tests/independent_stage.py``).
+
 :func:`fixed_hyperparameter_model` builds a :class:`~microctl.vhgpr.FittedVHGPR` directly
 from chosen hyperparameters and a chosen (planted) log-noise function, with no fitting: a
 model whose noise landscape is known exactly, so the controller's tests and
