@@ -22,7 +22,7 @@ Sections (``--only`` picks some; default: all, in this order):
     ``python scripts/bench_rigs.py --rigs 24 --jobs 2 --seed-sets 10`` (the main job over 10
     seed sets and 24 random rigs; ``docs/generated/bench_rigs.md``). The longest: ~half an hour
     on 2 cores.
-``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``
+``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``
     The other benchmark scripts with the arguments the docs quote; their printed tables are
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
 
@@ -61,6 +61,7 @@ CAPTURED = {
     "bench_solve": ("scripts/bench_solve.py", ("--sizes", "125,500,2000")),
     "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000")),
     "diagnosis_confusion": ("scripts/diagnosis_confusion.py", ()),
+    "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
 }
 SECTIONS = ("main_job", "paper_scale", "bench_rigs", *CAPTURED)
 #: Quantities of the per-offset table of the paper-scale rig: (label, controller, key).
