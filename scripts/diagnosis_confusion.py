@@ -54,10 +54,9 @@ import independent_stage as ind  # noqa: E402  (the test-only independent stage 
 from microctl.causes import REGISTRY  # noqa: E402
 from microctl.cli import main as cli_main  # noqa: E402
 from microctl.config import load_stage_config  # noqa: E402
-from microctl.diagnosis.data import data_from_arrays, data_from_log  # noqa: E402
+from microctl.diagnosis.data import data_from_arrays, read_for_diagnosis  # noqa: E402
 from microctl.diagnosis.pipeline import run_diagnosis  # noqa: E402
 from microctl.testing.plant import parameter_bar  # noqa: E402
-from microctl.measurement_log import read_log  # noqa: E402
 
 SHORT = {"actuator_gain": "gain", "contact_offset": "c_off", "tool_offset": "t_off", "sensor_scale": "scale",
          "sensor_nonlinearity": "quad", "contact_loss": "c_loss", "backlash": "backlash", "drift": "drift",
@@ -161,9 +160,9 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     times = []
 
-    def diagnose(data, k):
+    def diagnose(data, k, set_aside=None):
         t0 = time.perf_counter()
-        rep = run_diagnosis(cfg, data, seed=k, gp=False).report
+        rep = run_diagnosis(cfg, data, seed=k, gp=False, set_aside=set_aside).report
         times.append((data.n, time.perf_counter() - t0))
         return rep
 
@@ -295,8 +294,8 @@ def main(argv=None) -> int:
             for tag, r in (("clean", run), ("corrupt", bad)):
                 path = Path(tmp) / f"{k}_{tag}.csv"
                 r.write_log(path, cfg.stage.actuator_names, cfg.stage.dof, cfg.stage.tool.name)
-                logs.append(data_from_log(read_log(path, cfg.stage), cfg.stage))
-            rep_clean, rep_bad = diagnose(logs[0], k), diagnose(logs[1], k)
+                logs.append(read_for_diagnosis(path, cfg.stage)[:2])  # as `microctl diagnose` reads it
+            rep_clean, rep_bad = diagnose(logs[0][0], k, logs[0][1]), diagnose(logs[1][0], k, logs[1][1])
             want_lines = sorted(r + 2 for r, _, _ in cells)  # CSV line numbers (header = line 1)
             got_lines = sorted(o["line"] for o in rep_bad["outliers"]["rows"])
             r_ok = got_lines == want_lines

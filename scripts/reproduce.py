@@ -55,7 +55,7 @@ PAPER_SCALE = "configs/experiments/paper_scale.yaml"
 #: Seed offsets the paper-scale rig is also measured on (besides the shipped seeds, offset 0).
 PAPER_SCALE_OFFSETS = (10_000, 20_000, 30_000)
 #: The bench_rigs run the docs quote (``--jobs`` is taken from reproduce.py's own option).
-BENCH_RIGS_ARGS = ("--rigs", "24", "--seed-sets", "10")
+BENCH_RIGS_ARGS = ("--rigs", "24", "--methods", "paper,hgp,default,params", "--seed-sets", "10")
 #: Captured-output benchmarks: section -> (script, arguments).
 CAPTURED = {
     "bench_solve": ("scripts/bench_solve.py", ("--sizes", "125,500,2000")),

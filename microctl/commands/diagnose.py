@@ -9,8 +9,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 from microctl.commands._common import add_quiet, add_seed, check_output_dir
 from microctl.config import load_stage_config
 
@@ -36,17 +34,15 @@ OUTPUTS = ("report.json", "report.json.tmp", "report.md", "extended.yaml", "resi
 
 def _run(args: argparse.Namespace) -> int:
     from microctl.diagnosis import data_from_log, run_diagnosis, write_outputs
+    from microctl.diagnosis.data import read_for_diagnosis
     from microctl.measurement_log import read_log
     from microctl.progress import Progress
 
     cfg = load_stage_config(args.config)
     # rows no stage can have produced (a corrupt cell) are outliers to name, not a reason to stop
-    log = read_log(args.log, cfg.stage, plausibility="report")
-    data = data_from_log(log, cfg.stage)
-    set_aside = np.zeros(len(log), dtype=bool)
-    set_aside[[r.row for r in log.implausible]] = True
-    if log.implausible and not args.quiet:
-        for r in log.implausible:
+    data, set_aside, implausible = read_for_diagnosis(args.log, cfg.stage)
+    if implausible and not args.quiet:
+        for r in implausible:
             print(f"diagnose: note: {args.log}: row {r.row + 2}, {r.column}: {r.message}; set aside as an outlier",
                   file=sys.stderr)
     holdout = None

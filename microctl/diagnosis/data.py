@@ -187,3 +187,22 @@ def data_from_log(log: MeasurementLog, stage: Stage) -> DiagnosisData:
         seq=log.seq,
         line=np.arange(len(log)) + 2,  # the reader keeps every row, in file order (header = line 1)
     )
+
+
+def read_for_diagnosis(path, stage: Stage) -> tuple[DiagnosisData, np.ndarray, tuple]:
+    """Read a measurement log for a diagnosis: rows no stage can have produced (a corrupt cell,
+    :func:`microctl.measurement_log.implausible_rows`) are kept and marked, to be set aside as
+    outliers and named by row (``run_diagnosis(set_aside=...)``), not refused.
+
+    Returns
+    -------
+    data : DiagnosisData
+    set_aside : ndarray of bool, shape (n,)
+    implausible : tuple of ImplausibleRow
+    """
+    from microctl.measurement_log import read_log
+
+    log = read_log(path, stage, plausibility="report")
+    set_aside = np.zeros(len(log), dtype=bool)
+    set_aside[[r.row for r in log.implausible]] = True
+    return data_from_log(log, stage), set_aside, log.implausible
