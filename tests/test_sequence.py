@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -466,6 +467,10 @@ def test_experiment_runs_the_sequence_controllers(tmp_path):
         assert np.all(err <= (1e-6 if name == "oracle_sequence" else 0.2))
     text = (tmp_path / "out" / "report.md").read_text()
     assert "EAFM sequence" in text and "oracle sequence" in text
+    # the report compares greedy and sequence control by the cumulative VSSE, the quantity it minimises
+    cum = sum(inc["eafm_sequence"]["vsse_um2"])
+    m = re.search(r"EAFM sequence ([0-9.e+-]+) µm² measured", text)
+    assert m is not None and float(m.group(1)) == pytest.approx(cum, rel=1e-3, abs=1e-4)
 
 
 def test_experiment_config_accepts_the_sequence_controllers(tmp_path):

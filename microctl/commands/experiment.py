@@ -88,11 +88,12 @@ def _run(args: argparse.Namespace) -> int:
         inc = res.get("incremental")
         if inc is not None:
             from microctl.experiments.report import CONTROLLER_LABELS as labels  # as in report.md, the figures
-            print(f"{'target (µm)':18s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]), file=sys.stderr)
+            w = max(len("target (µm)"), *(len(labels.get(n, n)) + len(" VSSE (µm²)") for n in inc["controllers"]))
+            print(f"{'target (µm)':{w}s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]), file=sys.stderr)
             for name, c in inc["controllers"].items():
                 label = labels.get(name, name)
-                print(f"{label + ' MSSE (µm)':18s}" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
-                print(f"{label + ' VSSE (µm²)':18s}" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
+                print(f"{label + ' MSSE (µm)':{w}s}" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
+                print(f"{label + ' VSSE (µm²)':{w}s}" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
         bars = res.get("bars", {})
         if bars:
             failed = [k for k, b in bars.items() if not b["passed"]]

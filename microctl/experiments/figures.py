@@ -154,12 +154,12 @@ def figure_fig6(incremental: dict, title: str = ""):
             if r == 0:
                 ax.set_title(f"target $t_d$ = {t:g} µm")
             if j == 0:
-                ax.set_ylabel("$e_s = t_d - t_f$ (µm)" if r == 0 else f"$e_s$, {zoomed} (µm)")
+                ax.set_ylabel("$e_s = t_d - t_f$ (µm)" if r == 0 else "$e_s$ without the AFM (µm)")
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside upper right", ncol=len(labels), fontsize=9,
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=9,
                title="markers: one trial each (side by side); line: MSSE", title_fontsize=8)
     fig.suptitle(f"{title}Incremental movement (Fig. 6 analogue): steady-state error per trial, {T} trials\n"
-                 + (f"top: every controller on one scale; bottom: {zoomed} zoomed (one scale)" if rows == 2
+                 + (f"top: every controller on one scale; bottom: {zoomed}, zoomed to one scale" if rows == 2
                     else "one scale for every target"), fontsize=10, x=0.02, ha="left")
     return fig
 
