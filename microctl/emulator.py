@@ -28,7 +28,7 @@ import re
 import socket
 import socketserver
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -293,6 +293,17 @@ class Emulator:
     def url(self, device: str) -> str:
         """``socket://127.0.0.1:PORT`` of a started device."""
         return f"socket://{self.host}:{self.ports[device]}"
+
+    def pointed_at(self, config: StageConfig | None = None) -> StageConfig:
+        """``config`` (default: the emulated one) as a serial config whose controllers and gauge
+        are this started emulator's devices: what a serial backend connects with."""
+        config = self.config if config is None else config
+        ser = config.backend.serial
+        if ser is None:
+            raise ConfigError(f"{config.source}: backend.serial: is needed to connect to the emulator")
+        ser = replace(ser, controllers=tuple(replace(c, url=self.url(c.name)) for c in ser.controllers),
+                      gauge=replace(ser.gauge, url=self.url("gauge")))
+        return replace(config, backend=replace(config.backend, kind="serial", serial=ser))
 
     # ---- protocol ------------------------------------------------------------------
     def _terminator(self, device: str) -> bytes:

@@ -1,6 +1,5 @@
 """Serial backend end to end against the in-process emulator on loopback TCP."""
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,56 +10,28 @@ from microctl.backends import make_backend
 from microctl.backends.serial import SerialStage
 from microctl.backends.simulated import SimulatedStage
 from microctl.collect import run_collect
-from microctl.config import AxisMap, Gauge, SerialBackend, SerialController, load_stage_config
+from microctl.config import load_stage_config
 from microctl.emulator import Emulator, Fault
 from microctl.errors import BackendError, ConfigError
 from microctl.measurement_log import read_log
 
+from serial_rig import serial_config
+
 ROOT = Path(__file__).resolve().parents[1]
-TIMEOUT_S = 0.3
 
 
-def _base():
-    c = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
-    ser = SerialBackend(
-        controllers=(
-            SerialController("driver1", "socket://127.0.0.1:1", timeout_s=TIMEOUT_S),
-            SerialController("driver2", "socket://127.0.0.1:1", timeout_s=TIMEOUT_S),
-        ),
-        axes=(
-            ("q1", AxisMap("driver1", "1")),
-            ("q2", AxisMap("driver1", "2")),
-            ("q3", AxisMap("driver1", "3")),
-            ("q4", AxisMap("driver2", "A")),
-        ),
-        gauge=Gauge(url="socket://127.0.0.1:1", timeout_s=TIMEOUT_S),
-        on_target_timeout_s=1.0,
-        poll_interval_s=0.001,
-        retries=1,
-    )
-    return replace(c, backend=replace(c.backend, serial=ser))
-
-
-def _pointed_at(cfg, emu):
-    ser = cfg.backend.serial
-    ser = replace(
-        ser,
-        controllers=tuple(replace(c, url=emu.url(c.name)) for c in ser.controllers),
-        gauge=replace(ser.gauge, url=emu.url("gauge")),
-    )
-    return replace(cfg, backend=replace(cfg.backend, kind="serial", serial=ser))
 
 
 @pytest.fixture(scope="module")
 def moves():
-    cfg = _base()
+    cfg = serial_config()
     return AnalyticForwardModel(cfg.stage).workspace.sample(12, np.random.default_rng(5))
 
 
 def test_serial_equals_simulated(moves):
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg, ont_polls=2) as emu:
-        with make_backend(_pointed_at(cfg, emu)) as stage:
+        with make_backend(emu.pointed_at(cfg)) as stage:
             assert isinstance(stage, SerialStage)
             start = stage.state
             got = [stage.move(u) for u in moves]
@@ -77,9 +48,9 @@ def test_serial_equals_simulated(moves):
 
 
 def test_out_of_range_sends_nothing():
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             n = len(emu.log)
             with pytest.raises(BackendError, match=r"actuator q1 .*40\.0000 µm.*\[0, 32\]"):
                 stage.move(np.array([40.0, 0.0, 0.0]))
@@ -98,10 +69,10 @@ def test_out_of_range_sends_nothing():
     ],
 )
 def test_faults_name_device_axis_bytes_and_log_keeps_moves(tmp_path, moves, fault, match):
-    cfg = _base()
+    cfg = serial_config()
     out = tmp_path / "log.csv"
     with Emulator(cfg, faults=[fault]) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             with pytest.raises(BackendError, match=match) as info:
                 run_collect(stage, moves[:6], out, quiet=True)
     assert "keeps the 3 completed moves" in str(info.value)
@@ -110,7 +81,7 @@ def test_faults_name_device_axis_bytes_and_log_keeps_moves(tmp_path, moves, faul
 
 
 def test_emulator_refuses_non_loopback_and_wrong_port_count():
-    cfg = _base()
+    cfg = serial_config()
     with pytest.raises(ConfigError, match="loopback"):
         Emulator(cfg, host="0.0.0.0")
     with pytest.raises(ConfigError, match="give 3 ports"):
@@ -125,5 +96,5 @@ def test_emulated_yaml_serves_and_drives():
             pytest.skip(f"config.py rejects a whitespace-only gauge eol: {exc}")
         raise
     with Emulator(cfg) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             assert np.isfinite(stage.move(np.array([5.0, 0.1, 0.1])).t_um)

@@ -18,7 +18,7 @@ from microctl.afm import AnalyticForwardModel
 from microctl.backends.serial import GCS_ERRORS, SerialStage
 from microctl.emulator import Emulator
 
-from test_serial_state import START_Q, _base, _pointed_at  # noqa: E402 - sibling test module
+from serial_rig import START_Q, serial_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = (ROOT / "docs/serial-protocol.md").read_text()
@@ -55,10 +55,10 @@ def _collapse(words: list[str]) -> list[str]:
 @pytest.fixture(scope="module")
 def session():
     """Connect from a non-zero start, make 3 moves, read once: the emulator's log of every line."""
-    cfg = _base()
+    cfg = serial_config()
     moves = AnalyticForwardModel(cfg.stage).workspace.sample(3, np.random.default_rng(2))
     with Emulator(cfg, start_q_um=START_Q, start_ont_polls=2, ont_polls=2) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             for u in moves:
                 stage.move(u)
             stage.read()
@@ -118,7 +118,7 @@ def _ask(port: int, command: str) -> bytes:
 
 def test_emulator_answers_as_documented():
     """Reply formats of the table: multi-line rule, ERR? codes, unknown command → 2."""
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg, start_q_um=START_Q) as emu:
         port = emu.ports["driver1"]
         assert _ask(port, "*IDN?").count(b"\n") == 1

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,47 +15,13 @@ import pytest
 from microctl.afm import AnalyticForwardModel
 from microctl.backends.serial import SerialStage
 from microctl.collect import run_collect
-from microctl.config import AxisMap, Gauge, SerialBackend, SerialController, load_stage_config
 from microctl.emulator import Emulator, Fault
 from microctl.errors import BackendError, ConfigError
 from microctl.experiments.runner import MoveRecorder
 from microctl.measurement_log import read_log
 from microctl.physics import sensor_reading
 
-ROOT = Path(__file__).resolve().parents[1]
-TIMEOUT_S = 0.3
-START_Q = (19.0, 4.4, 16.3, 31.0)  # where the issue found the rig before a second collect
-
-
-def _base(**gauge):
-    c = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
-    ser = SerialBackend(
-        controllers=(
-            SerialController("driver1", "socket://127.0.0.1:1", timeout_s=TIMEOUT_S),
-            SerialController("driver2", "socket://127.0.0.1:1", timeout_s=TIMEOUT_S),
-        ),
-        axes=(
-            ("q1", AxisMap("driver1", "1")),
-            ("q2", AxisMap("driver1", "2")),
-            ("q3", AxisMap("driver1", "3")),
-            ("q4", AxisMap("driver2", "A")),
-        ),
-        gauge=Gauge(url="socket://127.0.0.1:1", timeout_s=TIMEOUT_S, **gauge),
-        on_target_timeout_s=1.0,
-        poll_interval_s=0.001,
-        retries=1,
-    )
-    return replace(c, backend=replace(c.backend, serial=ser))
-
-
-def _pointed_at(cfg, emu):
-    ser = cfg.backend.serial
-    ser = replace(
-        ser,
-        controllers=tuple(replace(c, url=emu.url(c.name)) for c in ser.controllers),
-        gauge=replace(ser.gauge, url=emu.url("gauge")),
-    )
-    return replace(cfg, backend=replace(cfg.backend, kind="serial", serial=ser))
+from serial_rig import START_Q, serial_config
 
 
 def _true_reading(emu) -> float:
@@ -71,11 +36,11 @@ def _moves(cfg, n, seed=5):
 
 def test_first_row_carries_the_true_previous_state(tmp_path):
     """A second collect on a rig left at q = (19.0, 4.4, 16.3, 31.0): the first row's q_prev is that."""
-    cfg = _base()
+    cfg = serial_config()
     out = tmp_path / "log.csv"
     with Emulator(cfg, start_q_um=START_Q) as emu:
         truth = _true_reading(emu)
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             assert stage.state[1:].tolist() == list(START_Q)
             run_collect(stage, _moves(cfg, 4), out, quiet=True)
         assert any("start state read from the devices: q1 = 19.0000 µm" in n for n in stage.notes)
@@ -89,27 +54,27 @@ def test_first_row_carries_the_true_previous_state(tmp_path):
 
 
 def test_zero_start_still_reads_zero_positions():
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             assert stage.state[1:].tolist() == [0.0, 0.0, 0.0, 0.0]
         commands = [line.split()[0] for dev, line in emu.log if dev == "driver1"]
     assert commands == ["*IDN?", "ERR?", "SVO", "ERR?", "ONT?", "POS?"]
 
 
 def test_axes_still_moving_at_connect_are_waited_for():
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg, start_q_um=START_Q, start_ont_polls=3) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             assert stage.state[1:].tolist() == list(START_Q)
         polls = [line for dev, line in emu.log if dev == "driver2" and line.startswith("ONT?")]
     assert len(polls) == 4  # three "0" answers, then on target
 
 
 def test_stale_error_is_cleared_and_reported():
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg, stale_errors={"driver2": 7}) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             assert np.isfinite(stage.move(_moves(cfg, 1)[0]).t_um)
     assert any("controller 'driver2' reported error 7 (position out of limits) left from before this session" in n
                for n in stage.notes), stage.notes
@@ -117,7 +82,7 @@ def test_stale_error_is_cleared_and_reported():
 
 def test_start_position_beyond_the_limit_moves_nothing():
     """POS? beyond limit_um (a wrong axis mapping or unit): refuse before any MOV."""
-    cfg = _base()
+    cfg = serial_config()
     acts = list(cfg.stage.actuators)
     acts[3] = replace(acts[3], range_um=(0.0, 30.0), limit_um=(0.0, 30.0))
     narrow = replace(cfg, stage=replace(cfg.stage, actuators=tuple(acts)))
@@ -125,12 +90,12 @@ def test_start_position_beyond_the_limit_moves_nothing():
         with pytest.raises(BackendError, match=r"controller 'driver2' \(socket://127\.0\.0\.1:\d+\): POS\? reports axis A "
                                                r"\(actuator q4\) at 31\.0000 µm, beyond its hardware limit \[0, 30\] µm; "
                                                r"check the axis mapping .*nothing was moved"):
-            SerialStage(_pointed_at(narrow, emu))
+            SerialStage(emu.pointed_at(narrow))
         assert not [line for _, line in emu.log if line.startswith("MOV")]
 
 
 def test_emulator_start_checks():
-    cfg = _base()
+    cfg = serial_config()
     with pytest.raises(ConfigError, match=r"start_q_um: q4 = 40 µm is beyond its limit_um \[0, 38\]"):
         Emulator(cfg, start_q_um=(0, 0, 0, 40))
     with pytest.raises(ConfigError, match=r"start_q_um: give 4 finite positions"):
@@ -141,10 +106,10 @@ def test_emulator_start_checks():
 
 def test_zero_at_start_tares_on_the_mean_of_tare_samples():
     """From a non-zero start: the first MOV goes to the zero state, then tare_samples readings."""
-    cfg = _base(zero_at_start=True, tare_samples=40)
+    cfg = serial_config(zero_at_start=True, tare_samples=40)
     offset = 5.0
     with Emulator(cfg, start_q_um=START_Q, gauge_offset_um=offset) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             truth = _true_reading(emu) + offset  # the zero state's reading, un-tared
             n_queries = sum(1 for dev, _ in emu.log if dev == "gauge")
             movs = [line for _, line in emu.log if line.startswith("MOV")]
@@ -160,10 +125,10 @@ def test_zero_at_start_tares_on_the_mean_of_tare_samples():
 
 @pytest.mark.parametrize("faulty", [["driver2"], ["driver1", "driver2"]])
 def test_err_checked_on_every_controller_that_moved(faulty):
-    cfg = _base()
+    cfg = serial_config()
     faults = [Fault("err7", name, after_moves=1) for name in faulty]
     with Emulator(cfg, faults=faults) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             u = _moves(cfg, 2)
             stage.move(u[0])
             n = len(emu.log)
@@ -181,11 +146,11 @@ def test_err_checked_on_every_controller_that_moved(faulty):
 
 def test_time_s_over_a_shared_serial_backend_is_wall_time(tmp_path):
     """experiment: trials share one serial stage; time_s must not add its clock again per trial."""
-    cfg = _base()
+    cfg = serial_config()
     rec = MoveRecorder(tmp_path / "log.csv", cfg, ("trial",))
     moves = _moves(cfg, 3)
     with Emulator(cfg) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             t_connect = time.monotonic()
             for trial in range(4):
                 rec.new_stage()
@@ -206,10 +171,10 @@ def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
     for gauge, expect in (({}, "collect: start state read from the devices: q1 = 19.0000 µm, q2 = 4.4000 µm"),
                           ({"zero_at_start": True, "tare_samples": 8},
                            "collect: gauge tared at the zero state: offset ")):
-        cfg = _base(**gauge)
+        cfg = serial_config(**gauge)
         with Emulator(cfg, start_q_um=START_Q) as emu:
             path = tmp_path / "stage.yaml"
-            path.write_text(_pointed_at(cfg, emu).dump_yaml())
+            path.write_text(emu.pointed_at(cfg).dump_yaml())
             out = tmp_path / "log.csv"
             assert main(["collect", "--config", str(path), "-n", "2", "-o", str(out)]) == 0
         err = capsys.readouterr().err
@@ -222,18 +187,18 @@ def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
 
 
 def test_garbled_controller_at_connect_names_it():
-    cfg = _base()
+    cfg = serial_config()
     with Emulator(cfg, faults=[Fault("garbled", "driver2", after_moves=0)]) as emu:
         with pytest.raises(BackendError, match=r"controller 'driver2' \(socket://127\.0\.0\.1:\d+\): unparsable reply to "
                                                r"'ERR\?' \(axes A\) after 2 attempts; expected an integer, received"):
-            SerialStage(_pointed_at(cfg, emu))
+            SerialStage(emu.pointed_at(cfg))
 
 
 def test_axes_never_on_target_time_out_with_the_controller_named():
-    cfg = _base()
+    cfg = serial_config()
     cfg = replace(cfg, backend=replace(cfg.backend, serial=replace(cfg.backend.serial, on_target_timeout_s=0.2)))
     with Emulator(cfg, ont_polls=10**9) as emu:
-        with SerialStage(_pointed_at(cfg, emu)) as stage:
+        with SerialStage(emu.pointed_at(cfg)) as stage:
             with pytest.raises(BackendError, match=r"controller 'driver1' .*: axes 1, 2, 3 not on target within 0.2 s "
                                                    r"after MOV"):
                 stage.move(_moves(cfg, 1)[0])
@@ -241,8 +206,8 @@ def test_axes_never_on_target_time_out_with_the_controller_named():
 
 def test_gauge_number_must_be_finite_and_strict():
     """A permissive reply_pattern must not let 'inf' through as a reading."""
-    cfg = _base(reply_pattern=r"^\s*(\S+)\s*$")
+    cfg = serial_config(reply_pattern=r"^\s*(\S+)\s*$")
     with Emulator(cfg, gauge_offset_um=float("inf")) as emu:
         with pytest.raises(BackendError, match=r"gauge \(socket://.*\): unparsable reply to 'MEAS\?' after 2 attempts "
                                                r"\(pattern .*, a finite decimal number\); received b'\+inf\\r\\n'"):
-            SerialStage(_pointed_at(cfg, emu))
+            SerialStage(emu.pointed_at(cfg))

@@ -430,10 +430,7 @@ def _emulated_config(cfg: ExperimentConfig):
     sc = cfg.stage_config
     emu = Emulator(sc, seed=cfg.seeds.training_stage)
     emu.start()
-    ser = sc.backend.serial
-    ser = replace(ser, controllers=tuple(replace(c, url=emu.url(c.name)) for c in ser.controllers),
-                  gauge=replace(ser.gauge, url=emu.url("gauge")))
-    return emu, replace(sc, backend=replace(sc.backend, kind="serial", serial=ser))
+    return emu, emu.pointed_at()
 
 
 def run_experiment(cfg: ExperimentConfig, out: str | Path, *, quiet: bool = False,
