@@ -55,6 +55,15 @@ def test_negative_seed_is_a_usage_error(capsys, argv):
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize("value,message", [("0", "must be at least 1, got 0"), ("two", "'two' is not an integer")])
+def test_gp_restarts_must_be_a_positive_integer(capsys, value, message):
+    with pytest.raises(SystemExit) as info:
+        main(["gp", "fit", "x.csv", "--x", "a", "--y", "b", "-o", "g.npz", "--restarts", value])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"argument --restarts: {message}" in err
+    assert "Traceback" not in err
+
+
 def test_collect_refuses_to_overwrite_its_stage_file(tmp_path, capsys):
     cfg = tmp_path / "stage.yaml"
     shutil.copy(TABLE1, cfg)

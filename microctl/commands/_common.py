@@ -16,15 +16,23 @@ def add_quiet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="hide progress on stderr")
 
 
-def seed(text: str) -> int:
-    """argparse type of ``--seed``: a non-negative integer (what NumPy's generators take)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
-    return value
+def int_at_least(minimum: int, rule: str):
+    """An argparse type: an integer >= ``minimum``; ``rule`` says what is valid in the error."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {value}")
+        return value
+
+    return parse
+
+
+#: argparse type of ``--seed``: a non-negative integer (what NumPy's generators take).
+seed = int_at_least(0, "a non-negative integer")
 
 
 def add_seed(parser: argparse.ArgumentParser, help_text: str) -> None:

@@ -17,7 +17,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from microctl.commands._common import add_quiet, add_seed, check_output_file
+from microctl.commands._common import add_quiet, add_seed, check_output_file, int_at_least
 from microctl.errors import DataError, MicroctlError
 from microctl.progress import Progress
 from microctl.tabular import read_table
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("--x", required=True, metavar="COL[,COL..]", help="input column(s), comma-separated")
     fit.add_argument("--y", required=True, metavar="COL", help="output column")
     _add_out(fit, "GP.npz", "model file to write")
-    fit.add_argument("--restarts", type=_positive_int, default=2, metavar="N",
+    fit.add_argument("--restarts", type=int_at_least(1, "at least 1"), default=2, metavar="N",
                      help="optimisation runs in total, the first from a homoscedastic GP (default 2)")
     add_seed(fit, "seed of the restarts (default 0)")
     fit.add_argument("--bias", action="store_true", help="add a constant term to both kernels")
@@ -60,16 +60,6 @@ def _add_out(parser: argparse.ArgumentParser, metavar: str, help_text: str) -> N
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("-o", "--out", type=Path, metavar=metavar, help=help_text)
     group.add_argument("--output", dest="out", type=Path, help=argparse.SUPPRESS)
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 def _missing_subcommand(parser: argparse.ArgumentParser) -> int:
