@@ -21,3 +21,24 @@ def table1(table1_path):
     from microctl.config import load_stage_config
 
     return load_stage_config(table1_path)
+
+
+@pytest.fixture(scope="session")
+def planted_log(tmp_path_factory) -> Path:
+    """A hand-written 40-row log of the Table I stage: the AFM's reading plus a planted smooth
+    residual (0.3 sin(z/8) + 0.2 rx) and 0.05 µm noise, seed 0 (for train/solve and model-file tests)."""
+    import numpy as np
+
+    from microctl.afm import AnalyticForwardModel
+    from microctl.config import load_stage_config
+
+    afm = AnalyticForwardModel(load_stage_config(CONFIGS / "stage" / "table1.yaml").stage)
+    rng = np.random.default_rng(0)
+    U = afm.workspace.sample(40, rng)
+    Q = U @ afm.K.T
+    t = afm.t_of(U) + 0.3 * np.sin(U[:, 0] / 8) + 0.2 * U[:, 1] + 0.05 * rng.standard_normal(40)
+    lines = ["seq,u_z,u_rx,u_ry,q1,q2,q3,q4,t"]
+    lines += [",".join([str(k)] + [f"{v:.9g}" for v in (*U[k], *Q[k], t[k])]) for k in range(40)]
+    log = tmp_path_factory.mktemp("planted_log") / "log.csv"
+    log.write_text("\n".join(lines) + "\n")
+    return log

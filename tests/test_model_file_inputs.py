@@ -20,20 +20,11 @@ CONFIG = ROOT / "configs/stage/table1.yaml"
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory) -> Path:
+def model_path(tmp_path_factory, planted_log) -> Path:
     """A residual model trained by ``microctl train`` on a 40-row log of the Table I stage."""
-    d = tmp_path_factory.mktemp("model")
-    afm = AnalyticForwardModel(load_stage_config(CONFIG).stage)
-    rng = np.random.default_rng(0)
-    U = afm.workspace.sample(40, rng)
-    Q = U @ afm.K.T
-    t = afm.t_of(U) + 0.3 * np.sin(U[:, 0] / 8) + 0.2 * U[:, 1] + 0.05 * rng.standard_normal(40)
-    lines = ["seq,u_z,u_rx,u_ry,q1,q2,q3,q4,t"]
-    lines += [",".join([str(k)] + [f"{v:.9g}" for v in (*U[k], *Q[k], t[k])]) for k in range(40)]
-    log = d / "log.csv"
-    log.write_text("\n".join(lines) + "\n")
-    out = d / "model.npz"
-    assert main(["train", str(log), "--config", str(CONFIG), "-o", str(out), "--restarts", "1", "--quiet"]) == 0
+    out = tmp_path_factory.mktemp("model") / "model.npz"
+    assert main(["train", str(planted_log), "--config", str(CONFIG), "-o", str(out), "--restarts", "1",
+                 "--quiet"]) == 0
     return out
 
 

@@ -20,19 +20,11 @@ CONFIG = ROOT / "configs/stage/table1.yaml"
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """A hand-written 40-row log (AFM + planted residual) and the model trained on it."""
+def trained(tmp_path_factory, planted_log):
+    """The hand-written 40-row log (conftest ``planted_log``) and the model trained on it."""
     d = tmp_path_factory.mktemp("train")
     afm = AnalyticForwardModel(load_stage_config(CONFIG).stage)
-    rng = np.random.default_rng(0)
-    U = afm.workspace.sample(40, rng)
-    Q = U @ afm.K.T
-    t = afm.t_of(U) + 0.3 * np.sin(U[:, 0] / 8) + 0.2 * U[:, 1] + 0.05 * rng.standard_normal(40)
-    lines = ["seq,u_z,u_rx,u_ry,q1,q2,q3,q4,t"]
-    for k in range(40):
-        lines.append(",".join([str(k)] + [f"{v:.9g}" for v in (*U[k], *Q[k], t[k])]))
-    log = d / "log.csv"
-    log.write_text("\n".join(lines) + "\n")
+    log = planted_log
     model = d / "model.npz"
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(model), "--restarts", "1", "--seed", "3",
                "--quiet"])
