@@ -42,3 +42,19 @@ def planted_log(tmp_path_factory) -> Path:
     log = tmp_path_factory.mktemp("planted_log") / "log.csv"
     log.write_text("\n".join(lines) + "\n")
     return log
+
+
+@pytest.fixture
+def nlpsol_calls(monkeypatch) -> list:
+    """The names of the CasADi NLP solvers built while the test runs (``casadi.nlpsol`` spied on)."""
+    import casadi
+
+    calls: list = []
+    real = casadi.nlpsol
+
+    def counting(*args, **kwargs):
+        calls.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(casadi, "nlpsol", counting)
+    return calls

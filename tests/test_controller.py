@@ -6,11 +6,9 @@ import re
 import math
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 import pytest
 
-import microctl.controller as controller_mod
 from microctl.afm import AnalyticForwardModel
 from microctl.config import load_stage_config
 from microctl.controller import (AFMController, ControllerSettings, EAFMMeanController, OptimalController)
@@ -170,19 +168,11 @@ def test_unreachable_target_gives_interval(afm, eafm, opt):
         AFMController(afm).solve(-500.0)
 
 
-def test_solver_built_once_per_model(afm, eafm, monkeypatch):
-    calls = []
-    real = ca.nlpsol
-
-    def counting(*a, **k):
-        calls.append(a[0])
-        return real(*a, **k)
-
-    monkeypatch.setattr(controller_mod.ca, "nlpsol", counting)
+def test_solver_built_once_per_model(afm, eafm, nlpsol_calls):
     ctl = OptimalController(eafm)
     for s, t in zip(_states(afm, 5, seed=7), (0.0, 10.0, 20.0, 30.0, -10.0)):
         ctl.solve(t, s)
-    assert len(calls) == 1 and ctl.n_builds == 1
+    assert len(nlpsol_calls) == 1 and ctl.n_builds == 1
 
 
 def test_ipopt_failure_never_leaves_the_ranges(afm, eafm):

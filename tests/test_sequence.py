@@ -11,12 +11,10 @@ import re
 from dataclasses import replace
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 import pytest
 import yaml
 
-import microctl.sequence as sequence_mod
 from microctl.afm import AnalyticForwardModel
 from microctl.backends.simulated import SimulatedStage
 from microctl.cli import main
@@ -340,19 +338,11 @@ def test_ipopt_failure_never_leaves_the_ranges(afm, curved):
     _valid(afm, curved, plan, afm.zero_state(), [6.0, 12.0, 3.0])
 
 
-def test_one_nlp_per_horizon(afm, curved, monkeypatch):
-    calls = []
-    real = ca.nlpsol
-
-    def counting(*a, **k):
-        calls.append(a[0])
-        return real(*a, **k)
-
-    monkeypatch.setattr(sequence_mod.ca, "nlpsol", counting)
+def test_one_nlp_per_horizon(afm, curved, nlpsol_calls):
     seq = SequenceController(curved)
     for targets in ([1.0, 2.0], [5.0, 3.0], [4.0, 8.0, 9.0], [2.0, 1.0]):
         seq.plan(targets)
-    assert calls == ["eafm_sequence_2_ipopt", "eafm_sequence_3_ipopt"] and seq.n_builds == 2
+    assert nlpsol_calls == ["eafm_sequence_2_ipopt", "eafm_sequence_3_ipopt"] and seq.n_builds == 2
 
 
 def test_bad_inputs(afm, curved):
