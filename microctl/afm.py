@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import Sequence
+from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -169,16 +169,37 @@ class Workspace:
         -------
         ndarray, shape (n, n_p)
         """
+        size = (max(4 * n, 64), self.u_lo.size)
+        return self.first_inside(n, lambda: rng.uniform(self.u_lo, self.u_hi, size=size), max_batches,
+                                 "the workspace polytope is too thin to sample by rejection")
+
+    def first_inside(self, n: int, draw: Callable[[], np.ndarray], max_batches: int, failure: str) -> np.ndarray:
+        """The first ``n`` rows, in order, of successive ``draw()`` batches that lie in the polytope.
+
+        Parameters
+        ----------
+        n : int
+        draw : callable
+            Returns the next batch of candidate control signals, shape (m, n_p).
+        max_batches : int
+            Batches drawn at most before giving up.
+        failure : str
+            Message of the :class:`SolveError` raised when fewer than ``n`` rows are found.
+
+        Returns
+        -------
+        ndarray, shape (n, n_p)
+        """
         out: list[np.ndarray] = []
         have = 0
         for _ in range(max_batches):
-            cand = rng.uniform(self.u_lo, self.u_hi, size=(max(4 * n, 64), self.u_lo.size))
+            cand = draw()
             ok = cand[self.contains(cand)]
             out.append(ok)
             have += len(ok)
             if have >= n:
                 return np.vstack(out)[:n]
-        raise SolveError("the workspace polytope is too thin to sample by rejection")
+        raise SolveError(failure)
 
     def map_unit(self, z: np.ndarray) -> np.ndarray:
         """Map points of the unit cube (shape (m, n_p)) to the bounding box."""

@@ -109,17 +109,9 @@ def _sobol_in_polytope(afm: AnalyticForwardModel, n: int, seed: int) -> np.ndarr
     """The first n points of a scrambled Sobol sequence (bounding box) that lie in the polytope."""
     ws = afm.workspace
     sobol = qmc.Sobol(d=ws.u_lo.size, scramble=True, seed=np.random.default_rng(seed))
-    kept: list[np.ndarray] = []
-    have = 0
-    for _ in range(64):
-        z = sobol.random_base2(m=max(int(np.ceil(np.log2(max(4 * n, 16)))), 4))
-        u = ws.map_unit(z)
-        ok = u[ws.contains(u)]
-        kept.append(ok)
-        have += len(ok)
-        if have >= n:
-            return np.vstack(kept)[:n]
-    raise SolveError("the workspace polytope is too thin to fill from its bounding box")
+    m = max(int(np.ceil(np.log2(max(4 * n, 16)))), 4)
+    return ws.first_inside(n, lambda: ws.map_unit(sobol.random_base2(m=m)), 64,
+                           "the workspace polytope is too thin to fill from its bounding box")
 
 
 def space_filling_moves(afm: AnalyticForwardModel, n: int, seed: int = 0) -> np.ndarray:
