@@ -133,21 +133,6 @@ class ContactModel:
         """Number of contacts (= actuators)."""
         return self.A.shape[0]
 
-    @property
-    def scale(self) -> float:
-        """Gauge scale (``sensor.scale``)."""
-        return self.sensor.scale
-
-    @property
-    def quad_per_um(self) -> float:
-        """Gauge quadratic coefficient (``sensor.quad_per_um``), 1/µm."""
-        return self.sensor.quad_per_um
-
-    @property
-    def drift_um_per_s(self) -> float:
-        """Gauge drift rate (``sensor.drift_um_per_s``), µm/s."""
-        return self.sensor.drift_um_per_s
-
 
 def _preload_axis(stage: Stage) -> int:
     return stage.dof.index("z") if "z" in stage.dof else 0
