@@ -51,6 +51,7 @@ SEQUENCE_OBJECTIVES = ("sum", "max")
 __all__ = [
     "R_E_SETTINGS", "SEQUENCE_OBJECTIVES", "ControllerSettings", "ControlResult", "Controller", "EAFMController",
     "OptimalController", "AFMController", "EAFMMeanController", "RedundantSet", "NoiseComparison", "compare_noise",
+    "with_baseline",
 ]
 
 
@@ -171,8 +172,8 @@ class ControlResult:
     vs_baseline : NoiseComparison or None
         For the optimal controller given a baseline: is u credibly quieter than the
         baseline's command from the same state?
-    baseline_u : ndarray, shape (n_p,), or None
-        The baseline's command that ``vs_baseline`` compares with.
+    baseline : ControlResult or None
+        The baseline controller's result that ``vs_baseline`` compares with.
     """
 
     controller: str
@@ -192,7 +193,7 @@ class ControlResult:
     noise_std_um: float = float("nan")
     noise_upper_std_um: float = float("nan")
     vs_baseline: "NoiseComparison | None" = None
-    baseline_u: np.ndarray | None = None
+    baseline: "ControlResult | None" = None
 
     def to_dict(self, names: tuple[str, ...] | None = None) -> dict:
         """Plain-Python form; ``u`` as a dict when DoF ``names`` are given."""
@@ -707,13 +708,7 @@ class OptimalController(EAFMController):
         res = super().solve(target_um, state, u_init=u_init)
         if self.baseline is None:
             return res
-        b = self.baseline.solve(target_um, res.state)
-        cmp = compare_noise(self.eafm, res.state, res.u, b.u, self.settings.credible_level)
-        return replace(res, vs_baseline=cmp, baseline_u=b.u.copy())
-
-    def r_e_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
-        """r_e (µm²) at the rows of U, shape (m,)."""
-        return self.objective.r_np(self.eafm, s, U)
+        return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)
 
 
 class EAFMMeanController(EAFMController):
@@ -757,6 +752,13 @@ class NoiseComparison:
     def to_dict(self) -> dict:
         return {"prob_quieter": self.prob_quieter, "log_ratio_mean": self.log_ratio_mean,
                 "log_ratio_std": self.log_ratio_std, "credible": self.credible, "level": self.level}
+
+
+def with_baseline(eafm: EAFM, res: ControlResult, baseline: Controller, level: float = 0.95) -> ControlResult:
+    """``res`` with the ``baseline`` controller's result from the same state and whether ``res.u``
+    is credibly quieter than the baseline's command (:func:`compare_noise`)."""
+    b = baseline.solve(res.target_um, res.state)
+    return replace(res, vs_baseline=compare_noise(eafm, res.state, res.u, b.u, level), baseline=b)
 
 
 def compare_noise(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import replace
 
 import numpy as np
 
@@ -13,7 +12,7 @@ from microctl.afm import AnalyticForwardModel
 from microctl.io import print_json
 from microctl.config import load_stage_config
 from microctl.controller import (R_E_SETTINGS, SEQUENCE_OBJECTIVES, AFMController, ControllerSettings,
-                                 OptimalController, compare_noise)
+                                 OptimalController, with_baseline)
 from microctl.eafm import EAFM
 from microctl.errors import ConfigError
 from microctl.measurement_log import T_PLAUSIBLE_FACTOR, plausible_t_bound_um
@@ -136,7 +135,7 @@ def _run(args: argparse.Namespace) -> int:
     if targets is not None:
         return _run_sequence(args, afm, eafm, settings, base_ctrl, targets, state)
     res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
-    base = base_ctrl.solve(args.target, state)
+    base = res.baseline
     if args.json:
         print_json(_step_dict(afm, eafm, settings, res, base))
         return 0
@@ -214,9 +213,8 @@ def _run_sequence(args: argparse.Namespace, afm: AnalyticForwardModel, eafm: EAF
     plan = SequenceController(eafm, settings).plan(targets, state)
     steps = []
     for res in plan.steps:
-        base = base_ctrl.solve(res.target_um, res.state)
-        cmp = compare_noise(eafm, res.state, res.u, base.u, settings.credible_level)
-        steps.append((replace(res, vs_baseline=cmp, baseline_u=base.u.copy()), base))
+        res = with_baseline(eafm, res, base_ctrl, settings.credible_level)
+        steps.append((res, res.baseline))
     out = {
         "targets_um": list(plan.targets_um),
         "state": {n: float(v) for n, v in zip(afm.state_names, state)},
