@@ -38,6 +38,7 @@ import scipy.sparse as sps
 
 from microctl.afm import AnalyticForwardModel
 from microctl.errors import ConfigError
+from microctl.kernels import se_matrix
 from microctl.vhgpr import FittedVHGPR
 
 __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
@@ -85,20 +86,6 @@ class EAFMPrediction:
 #: the largest, far below round-off); their subnormal values and products slow exp and the
 #: BLAS product several-fold (measured 8 ms instead of 1 ms at 150 x 500 x 160).
 _SE_FLUSH = 345.0
-
-
-def _se_flushed(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float) -> np.ndarray:
-    """``sf2 exp(-|(xa - xb) / l|^2 / 2)``, shape (m, n), with factors below exp(-_SE_FLUSH) set to 0."""
-    inv_ls = np.exp(-np.asarray(log_lengthscales, dtype=float))
-    Za, Zb = Xa * inv_ls, Xb * inv_ls
-    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + np.einsum("ij,ij->i", Zb, Zb)[None, :] - 2.0 * (Za @ Zb.T)
-    sq *= -0.5
-    far = sq < -_SE_FLUSH
-    np.maximum(sq, -_SE_FLUSH, out=sq)
-    np.minimum(sq, 0.0, out=sq)
-    np.exp(sq, out=sq)
-    sq[far] = 0.0
-    return sq * math.exp(float(log_signal_var))
 
 
 def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
@@ -295,23 +282,34 @@ class EAFM:
         dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
         return t, dt
 
+    # ---- g's posterior (notes/vhgpr.md, prediction) at standardised inputs xs, shape (m, n_x) ----
+    def _xs(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return (self._x(s, U) - self._x_mean) / self._x_scale
+
+    def _g_mean(self, xs: np.ndarray, Kg: np.ndarray) -> np.ndarray:
+        """g's posterior mean, shape (m,), from ``Kg = k_g(xs, X)``."""
+        return Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+
+    def _g_gp_var(self, xs: np.ndarray, Kg: np.ndarray | None = None) -> np.ndarray:
+        """g's GP variance ``k** - ||L_g^-1 k||^2`` (O(m n^2)), or its prior bound ``k**`` when
+        negligible (O(m)), shape (m,); ``Kg = k_g(xs, X)`` when the caller has it."""
+        if self.model.g_gp_var_negligible:
+            return self._kg.diag(xs)
+        Kg = self._kg.matrix(xs, self.model.X) if Kg is None else Kg
+        v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+        return np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+
     def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """Mean of the log noise variance at many u (O(m n), vectorised), shape (m,)."""
-        xs = (self._x(s, U) - self._x_mean) / self._x_scale
-        return self._kg.matrix(xs, self.model.X) @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+        xs = self._xs(s, U)
+        return self._g_mean(xs, self._kg.matrix(xs, self.model.X))
 
     def noise_uncertainty(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """How uncertain the predicted log noise variance is at many u, shape (m,): g's GP
         variance plus the parametric prior mean's parameter variance, whether or not the model
         propagates the latter into ``g_var`` (:attr:`FittedVHGPR.g_prior_mean_with_uncertainty`)."""
-        xs = (self._x(s, U) - self._x_mean) / self._x_scale
-        if self.model.g_gp_var_negligible:
-            gp = self._kg.diag(xs)
-        else:
-            Kg = self._kg.matrix(xs, self.model.X)
-            v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-            gp = np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
-        return gp + self._gm_evidence.variance(xs)
+        xs = self._xs(s, U)
+        return self._g_gp_var(xs) + self._gm_evidence.variance(xs)
 
     def g_joint(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint posterior of the log noise variance at the rows of U: mean (m,), covariance (m, m).
@@ -321,9 +319,9 @@ class EAFM:
         covariance is included whether or not the model propagates it into ``g_var`` (this
         is for comparing poses on the evidence: :func:`microctl.controller.compare_noise`).
         """
-        xs = (self._x(s, U) - self._x_mean) / self._x_scale
+        xs = self._xs(s, U)
         Kg = self._kg.matrix(xs, self.model.X)
-        mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+        mean = self._g_mean(xs, Kg)
         cov = self._kg.matrix(xs, xs) + self._gm_evidence.covariance(xs, xs)
         if not self.model.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
             V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
@@ -337,8 +335,8 @@ class EAFM:
         The transition costs of sequence control (:mod:`microctl.sequence`): the noise of a
         move depends on where the previous move left the actuators (x = [s; u], eq. 3), so a
         move to each candidate pose is scored from each candidate previous state. The kernel
-        of g is separable over x = [s; u] (ARD SE: a product over inputs; bias and linear
-        parts: sums), so ``k([s_i; u_j], X) . beta = sf2 (A_s o beta) A_u^T + ...`` with
+        of g (ARD SE plus a bias; no linear part, :attr:`FittedVHGPR.g_kernel`) is separable
+        over x = [s; u] (the SE part is a product over inputs), so ``k([s_i; u_j], X) . beta = sf2 (A_s o beta) A_u^T + ...`` with
         ``A_s`` (m1, n) and ``A_u`` (m2, n): one (m1 x n)(n x m2) product instead of m1 m2
         kernel rows. The prior mean (``noise_prior`` eq. 1) is evaluated on the pairwise
         features ``a_j . x + b_j`` (linear: a sum of an s part and a u part).
@@ -363,13 +361,9 @@ class EAFM:
         xs_u = (U - self._x_mean[ns:]) / self._x_scale[ns:]
         kg, X, beta = self._kg, self.model.X, np.asarray(self.model.g_beta, dtype=float)
         ls = np.asarray(kg.log_lengthscales, dtype=float)
-        A_s = _se_flushed(xs_s, X[:, :ns], ls[:ns], 0.0)                  # (m1, n)
-        A_u = _se_flushed(xs_u, X[:, ns:], ls[ns:], kg.log_signal_var)    # (m2, n), carries sf2
+        A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
+        A_u = se_matrix(xs_u, X[:, ns:], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
         mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
-        v = kg.linear_vars
-        if v is not None:
-            lw = (X * v).T @ beta
-            mean = mean + (xs_s @ lw[:ns])[:, None] + (xs_u @ lw[ns:])[None, :]
         gm = self._gm
         if gm.p == 0:
             prior = np.full(mean.shape, float(gm.log_const))
@@ -389,12 +383,9 @@ class EAFM:
         mean = mean + prior + self._log_y2
         var = prior_var
         if self.model.g_gp_var_negligible:
-            diag = kg.signal_var + kg.bias_var
-            if v is not None:
-                diag = diag + ((xs_s * xs_s) @ v[:ns])[:, None] + ((xs_u * xs_u) @ v[ns:])[None, :]
-            var = var + diag
-        elif with_gp_var:  # g_np's variance: the prior mean's plus the GP's exact term
-            var = np.vstack([self.g_np(S[i], U)[1] for i in range(S.shape[0])])
+            var = var + (kg.signal_var + kg.bias_var)
+        elif with_gp_var:  # g_np's variance: the prior mean's plus the GP's exact term, row by row
+            var = np.vstack([self._gm.variance(xs) + self._g_gp_var(xs) for xs in (self._xs(s, U) for s in S)])
         return mean, var
 
     def g_np(self, s: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -404,13 +395,9 @@ class EAFM:
         k||^2`` and keeps the prior mean's parameter variance (O(m)): a cheap proxy for
         seeding at large n.
         """
-        xs = (self._x(s, U) - self._x_mean) / self._x_scale
+        xs = self._xs(s, U)
         Kg = self._kg.matrix(xs, self.model.X)
-        mean = Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
         var = self._gm.variance(xs)
-        if self.model.g_gp_var_negligible:
-            var = var + self._kg.diag(xs)
-        elif with_gp_var:
-            v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-            var = var + np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
-        return mean, var
+        if self.model.g_gp_var_negligible or with_gp_var:
+            var = var + self._g_gp_var(xs, Kg)
+        return self._g_mean(xs, Kg), var

@@ -31,7 +31,8 @@ import numpy as np
 __all__ = ["KernelSpec", "Kernel", "se_matrix"]
 
 
-def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float) -> np.ndarray:
+def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float,
+              flush: float | None = None) -> np.ndarray:
     """The ARD squared-exponential part ``sf2 exp(-|(xa - xb) / l|^2 / 2)``, shape (m, n).
 
     Computed as ``|a|^2 + |b|^2 - 2 a.b`` on scaled inputs (one BLAS product), clipped at 0.
@@ -42,6 +43,9 @@ def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_
     Xb : ndarray, shape (n, d)
     log_lengthscales : ndarray, shape (d,)
     log_signal_var : float
+    flush : float, optional
+        Factors ``exp(-|.|^2 / 2)`` below ``exp(-flush)`` are set to 0 instead of computed:
+        subnormal values slow ``exp`` and the BLAS products that use the matrix several-fold.
     """
     inv_ls = np.exp(-np.asarray(log_lengthscales, dtype=float))
     Za = np.asarray(Xa, dtype=float) * inv_ls
@@ -50,7 +54,13 @@ def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_
     sq -= 2.0 * (Za @ Zb.T)
     np.maximum(sq, 0.0, out=sq)
     sq *= -0.5
+    far = None
+    if flush is not None:
+        far = sq < -flush
+        np.maximum(sq, -flush, out=sq)
     np.exp(sq, out=sq)
+    if far is not None:
+        sq[far] = 0.0
     sq *= math.exp(float(log_signal_var))
     return sq
 

@@ -116,11 +116,12 @@ class NoiseVariance:
 
     def r_np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         """r_e (µm²) at the rows of U, shape (m,)."""
-        if self.r_e == "noise_median" and not self.epistemic:
-            return np.exp(eafm.g_mean_np(s, U))  # O(m n): no triangular solve
-        cheap = seeding and U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
-        mean, var = eafm.g_np(s, U, with_gp_var=not cheap)
-        r = np.exp(self.log_r(mean, var, np.sqrt))
+        if self.r_e == "noise_median":
+            r = np.exp(eafm.g_mean_np(s, U))  # O(m n): the median needs no variance
+        else:
+            cheap = seeding and U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
+            mean, var = eafm.g_np(s, U, with_gp_var=not cheap)
+            r = np.exp(self.log_r(mean, var, np.sqrt))
         if self.epistemic:
             r = r + eafm.predict(s, U).f_var
         return r
