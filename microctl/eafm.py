@@ -39,6 +39,7 @@ import scipy.sparse as sps
 from microctl.afm import AnalyticForwardModel
 from microctl.errors import ConfigError
 from microctl.kernels import se_matrix
+from microctl.measurement_log import plausible_t_bound_um
 from microctl.vhgpr import FittedVHGPR
 
 __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
@@ -47,6 +48,23 @@ __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
 def load_residual_model(path: str | Path) -> FittedVHGPR:
     """Read a residual model file (``.npz`` written by :meth:`FittedVHGPR.save`)."""
     return FittedVHGPR.load(path)
+
+
+def _check_output_scale(model: FittedVHGPR, afm: AnalyticForwardModel, source: str) -> None:
+    """Refuse a residual model whose outputs no stage of this config can have produced.
+
+    The residual y = t' − AFM t (µm) of a healthy or defective stage is at most of the size
+    of the readings a log may hold (:func:`~microctl.measurement_log.plausible_t_bound_um`);
+    a model whose training residuals had a larger mean or spread (``y_mean``, ``y_scale``)
+    was trained on something else, or edited, and would only make IPOPT fail.
+    """
+    bound = plausible_t_bound_um(afm.stage)
+    for name in ("y_mean", "y_scale"):
+        value = abs(float(getattr(model, name)))
+        if value > bound:
+            raise ConfigError(f"{source}: the residual model's {name} = {value:.4g} µm is beyond what stage "
+                              f"'{afm.stage.name}' can produce (|t| ≤ {bound:.6g} µm in a log); it was not trained "
+                              "on this stage's residuals, retrain it with `microctl train`")
 
 
 def bind_to_stage(model: FittedVHGPR, afm: AnalyticForwardModel) -> FittedVHGPR:
@@ -109,7 +127,8 @@ class EAFM:
     Raises
     ------
     ConfigError
-        Geometry-hash mismatch or wrong input dimension, naming the model file.
+        Geometry-hash mismatch, wrong input dimension, or (for a model file) output mean or
+        scale beyond what the stage can produce, naming the model file.
 
     Attributes
     ----------
@@ -123,6 +142,7 @@ class EAFM:
         if not isinstance(model, FittedVHGPR):
             source = str(model)
             model = load_residual_model(model)
+            _check_output_scale(model, afm, source)
         self.afm = afm
         self.model = model
         self.source = source

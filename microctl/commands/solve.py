@@ -83,26 +83,6 @@ def parse_state(text: str | None, afm: AnalyticForwardModel) -> np.ndarray:
     return out
 
 
-def check_residual_model(path: str, afm: AnalyticForwardModel) -> None:
-    """Refuse a residual model whose outputs no stage of this config can have produced.
-
-    The residual y = t' − AFM t (µm) of a healthy or defective stage is at most of the size
-    of the readings a log may hold (:func:`~microctl.measurement_log.plausible_t_bound_um`);
-    a model whose training residuals had a larger mean or spread (``y_mean``, ``y_scale``)
-    was trained on something else, or edited, and would only make IPOPT fail.
-    """
-    from microctl.vhgpr import FittedVHGPR
-
-    model = FittedVHGPR.load(path)
-    bound = plausible_t_bound_um(afm.stage)
-    for name in ("y_mean", "y_scale"):
-        value = abs(float(getattr(model, name)))
-        if value > bound:
-            raise ConfigError(f"{path}: the residual model's {name} = {value:.4g} µm is beyond what stage "
-                              f"'{afm.stage.name}' can produce (|t| ≤ {bound:.6g} µm in a log); it was not trained "
-                              "on this stage's residuals, retrain it with `microctl train`")
-
-
 def parse_targets(text: str) -> list[float]:
     """Parse ``--targets`` (``t1,t2,..`` µm) into a list; ConfigError naming the bad value."""
     parts = [p.strip() for p in text.split(",")]
@@ -128,7 +108,6 @@ def _run(args: argparse.Namespace) -> int:
     targets = parse_targets(args.targets) if args.targets is not None else None
     if targets is None and not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
-    check_residual_model(args.model, afm)
     eafm = EAFM(afm, args.model)
     settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa, sequence_objective=args.sequence_objective)
     base_ctrl = AFMController(afm, settings, reporter=eafm)
