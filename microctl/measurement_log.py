@@ -294,7 +294,7 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1, *, plausibility:
         Naming the file, the row (line number) and the column: missing required column,
         non-numeric or non-finite value, non-integer, duplicate or non-increasing ``seq``,
         ``seq`` above :data:`MAX_SEQ`, ``*_prev`` columns given only in part, too few rows;
-        and rows the stage cannot have produced (:func:`check_plausible`).
+        and rows the stage cannot have produced (:func:`implausible_rows`).
     """
     table = read_table(path, min_rows=0)
     p = table.path
@@ -467,27 +467,6 @@ def implausible_rows(
             out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on row "
                                                    f"{k + 1}; time_s must not decrease in seq order"))
     return sorted(out, key=lambda r: r.row)
-
-
-def check_plausible(
-    path: Path | str,
-    stage: Stage,
-    u: np.ndarray,
-    q: np.ndarray,
-    t: np.ndarray,
-    s_prev: np.ndarray | None = None,
-    time_s: np.ndarray | None = None,
-) -> None:
-    """Refuse a log with a row no stage of this config can have produced (:func:`implausible_rows`).
-
-    Raises
-    ------
-    DataError
-        For the first such row: the file, the row (CSV line) and the column.
-    """
-    rows = implausible_rows(stage, u, q, t, s_prev, time_s)
-    if rows:
-        raise _implausible_error(path, rows[0])
 
 
 def _implausible_error(path: Path | str, r: ImplausibleRow) -> DataError:

@@ -153,7 +153,6 @@ def test_time_s_over_a_shared_serial_backend_is_wall_time(tmp_path):
         with SerialStage(emu.pointed_at(cfg)) as stage:
             t_connect = time.monotonic()
             for trial in range(4):
-                rec.new_stage()
                 for u in moves:
                     rec.move(stage, u, trial=trial)
                 time.sleep(0.25)

@@ -90,16 +90,12 @@ class MoveRecorder:
     def rows(self) -> int:
         return self.writer.rows
 
-    def new_stage(self) -> None:
-        """A trial begins: keep ``time_s`` increasing across stages.
-
-        Only a *fresh* backend (its clock starts at 0) adds the time run so far; the shared
-        serial backend keeps its own clock running, so adding it again would count the
-        elapsed time twice (see :meth:`move`, which decides by the backend object).
-        """
-
     def move(self, backend: StageBackend, u: np.ndarray, **extra: Any) -> tuple[Measurement, np.ndarray]:
         """Execute ``u`` (shape (n_p,)) and log it.
+
+        ``time_s`` keeps increasing across trials: a backend not seen in the previous move is a
+        fresh stage whose clock restarted at 0, so the time run so far is added to it; the shared
+        serial backend keeps its own clock running and gets nothing added.
 
         Returns
         -------
@@ -180,7 +176,6 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
     rec = run.recorder("training", ("trial", "target_um", "controller"))
     moves = training_moves(afm, tr.design, tr.moves, cfg.seeds.design, tr.episode_moves)
     with run.backend(cfg.seeds.training_stage) as b, Progress(len(moves), "training moves", quiet=run.quiet) as pr:
-        rec.new_stage()
         for u in moves:
             m, _ = rec.move(b, u, trial=0, controller="design")
             pr.step(info=f"t = {m.t_um:.3f} µm")
@@ -195,7 +190,6 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
             done = 0
             with run.backend(cfg.seeds.training_stage + r) as b, \
                     Progress(tr.refine_moves, f"refinement round {r}", quiet=run.quiet) as pr:
-                rec.new_stage()
                 while done < tr.refine_moves:
                     rec.move(b, np.zeros(afm.n_p), trial=r, target_um=0.0, controller="eafm")  # back to zero
                     done += 1
@@ -275,7 +269,6 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
     with Progress(n * T, "absolute movement", quiet=run.quiet) as pr:
         for k in range(T):
             with run.backend(cfg.seeds.absolute_stage + k) as b:
-                rec.new_stage()
                 truth = run.truth(b)
                 for i, u in enumerate(U):
                     rec.move(b, zero, trial=k, point=-1, controller="none")
@@ -335,7 +328,6 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
             for k in range(T):
                 # the same stage seed for every controller: common random numbers
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
-                    rec.new_stage()
                     truth = run.truth(b)
                     if isinstance(ctrl, (OracleController, OracleSequenceController)):
                         ctrl.bind(truth)
