@@ -67,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
     try:
         return _main(argv)
-    except KeyboardInterrupt:  # e.g. while the command modules are still being imported
+    except KeyboardInterrupt:  # in a command, or while the command modules are still being imported
         print("microctl: interrupted", file=sys.stderr)
         return 130
 
@@ -86,9 +86,6 @@ def _main(argv: Sequence[str] | None) -> int:
     except MicroctlError as exc:
         print(f"microctl: error: {_one_line(exc)}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("microctl: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:  # output piped into e.g. `head`
         import os
 

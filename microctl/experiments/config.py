@@ -12,6 +12,7 @@ backend is opened. See ``docs/experiments.md`` for the reference.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from functools import cache
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -334,11 +335,17 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
 
+    @cache
+    def reachable() -> tuple[float, float]:  # the AFM's reachable t range (two LPs), computed once
+        from microctl.afm import AnalyticForwardModel
+
+        return AnalyticForwardModel(stage_config.stage).t_range()
+
     tr_raw = top.get("training")
     rng = None
     if isinstance(tr_raw, Mapping) and tr_raw.get("refine_target_range_um") is not None:
         rng = ck.interval(tr_raw["refine_target_range_um"], "training.refine_target_range_um")
-        _check_in_range(ck, stage_config, "training.refine_target_range_um", rng)
+        _check_in_range(ck, reachable(), "training.refine_target_range_um", rng)
     training = read_settings(ck, tr_raw, "training", Training, refine_target_range_um=rng)
     controller = read_settings(ck, top.get("controller"), "controller", ControllerSettings)
 
@@ -362,7 +369,8 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     if not absolute.enabled and not incremental.enabled:
         raise ck.fail("incremental.enabled", "both experiments are disabled; enable absolute or incremental")
     if incremental.enabled:
-        _check_targets(ck, stage_config, incremental.targets_um)
+        for i, t in enumerate(incremental.targets_um):  # every target reachable, checked before any move
+            _check_in_range(ck, reachable(), f"incremental.targets_um[{i}]", (t,))
 
     return ExperimentConfig(
         source=source, stage_path=stage_path, stage_config=stage_config, emulate=emulate,
@@ -372,17 +380,9 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     )
 
 
-def _check_targets(ck: FieldReader, stage_config: StageConfig, targets: tuple[float, ...]) -> None:
-    """Every target inside the AFM's reachable range (checked before any move)."""
-    for i, t in enumerate(targets):
-        _check_in_range(ck, stage_config, f"incremental.targets_um[{i}]", (t,))
-
-
-def _check_in_range(ck: FieldReader, stage_config: StageConfig, path: str, values: tuple[float, ...]) -> None:
+def _check_in_range(ck: FieldReader, reachable: tuple[float, float], path: str, values: tuple[float, ...]) -> None:
     """Tool poses inside the AFM's reachable range [lo, hi] (the bound printed in full precision)."""
-    from microctl.afm import AnalyticForwardModel
-
-    lo, hi = AnalyticForwardModel(stage_config.stage).t_range()
+    lo, hi = reachable
     for t in values:
         if not lo <= t <= hi:
             raise ck.fail(path, f"{t:g} µm is outside the stage's reachable range [{lo!r}, {hi!r}] µm")
