@@ -164,15 +164,14 @@ def with_nuisance(stage: Stage, values: dict[str, float]) -> Stage:
     return stage
 
 
+def _prediction(stage: Stage, effects: Effects, data: DiagnosisData):
+    """The extended model's prediction of the moves in ``data`` (readings ``.t``, contacts ``.active``)."""
+    return ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s)
+
+
 def predict(stage: Stage, effects: Effects, data: DiagnosisData) -> np.ndarray:
     """Expected readings of the moves in ``data`` under ``effects``, shape (n,)."""
-    return ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s).t
-
-
-def lifts_a_ball(stage: Stage, effects: Effects, data: DiagnosisData) -> bool:
-    """Whether a ball is out of contact at some move of ``data`` under ``effects``."""
-    pred = ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s)
-    return not bool(pred.active.all())
+    return _prediction(stage, effects, data).t
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,10 +390,12 @@ def fit_mean(
     sigma2 = rss / max(data.n - k, 1)
     se, deficient = _stderr(res.jac, sigma2)
     eff, st, nv = split_x(x)
-    pred = predict(st, eff, data)
+    fitted = _prediction(st, eff, data)  # one equilibrium solve for the readings and the contacts
+    pred = fitted.t
     z = zero_of(pred)
     jac = res.jac / np.where(w > 0, w, 1.0)[:, None]
-    unphysical = (not any(s.cls.lifts_balls for s in specs)) and lifts_a_ball(st, eff, data)
+    # a ball out of contact at some move, with no cause that lifts balls: not a physical explanation
+    unphysical = (not any(s.cls.lifts_balls for s in specs)) and not bool(fitted.active.all())
     return MeanFit(specs, x[:k_par], se[:k_par], rss, data.n, pred + z, eff, deficient, res.message, z,
                    zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st, jac,
                    unphysical)
