@@ -588,11 +588,6 @@ def _effects_with(self, *causes: Cause):
     return type(self)(**kw)
 
 
-def _effects_only(self, kinds: Sequence[str]):
-    """A copy with only the causes of ``kinds``."""
-    return type(self)().with_(*self.items(kinds))
-
-
 def _effects_from_items(cls, causes: Sequence[Cause]):
     """An Effects holding ``causes``."""
     return cls().with_(*causes)
@@ -614,7 +609,6 @@ Effects = make_dataclass(
         "items": _effects_items,
         "to_dict": _effects_to_dict,
         "with_": _effects_with,
-        "only": _effects_only,
         "of": classmethod(_effects_from_items),
     },
 )

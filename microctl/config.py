@@ -26,7 +26,6 @@ import numpy as np
 import yaml
 
 from microctl.causes import (  # noqa: F401  (re-exported: the config's cause entries)
-    MEAN_KINDS,
     REGISTRY,
     ActuatorFriction,
     ActuatorGain,
@@ -384,13 +383,10 @@ class StageConfig:
 # --------------------------------------------------------------------------------------
 
 
-def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int, *, kinds: tuple[str, ...] | None = None
-                   ) -> Effects:
+def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int) -> Effects:
     """Parse ``effects`` / ``corrections``: one key per cause of the registry (:mod:`microctl.causes`).
 
     Per-actuator causes are lists (at most one entry per actuator), the others one mapping.
-    ``kinds`` restricts which kinds of cause are allowed here (a cause of another kind is a
-    one-line error saying so).
     """
     if raw is None:
         return Effects()
@@ -399,9 +395,6 @@ def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int, *, kinds: 
     for name, cls in REGISTRY.items():
         if name not in raw or raw[name] is None:
             continue
-        if kinds is not None and cls.kind not in kinds:
-            raise ctx.fail(f"{path}.{name}", f"is a {cls.kind} cause, not allowed here (allowed kinds: "
-                           f"{', '.join(kinds)})")
         if not cls.per_actuator:
             causes.append(_parse_cause(ctx, cls, raw[name], f"{path}.{name}", n_act))
             continue
@@ -805,7 +798,3 @@ def load_stage_config(path: str | Path) -> StageConfig:
     """
     return parse_stage_config(load_yaml(path), source=str(path))
 
-
-def with_corrections(config: StageConfig, corrections: Effects) -> StageConfig:
-    """A copy of ``config`` whose stage model carries ``corrections``."""
-    return replace(config, stage=replace(config.stage, corrections=corrections))

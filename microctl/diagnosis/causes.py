@@ -34,9 +34,6 @@ from microctl.diagnosis.data import DiagnosisData
 from microctl.errors import SolveError
 from microctl.extended import ExtendedForwardModel
 
-#: Mean causes in vocabulary order (report names), from the registry.
-MEAN_CAUSES = tuple(n for n, c in REGISTRY.items() if c.kind in MEAN_KINDS)
-
 #: Relative tolerances of the least-squares fits (parameters to ~1e-8 of their scale: far below
 #: any standard error).
 FIT_TOL = 1e-8
@@ -133,8 +130,6 @@ def candidate_specs(stage: Stage, has: Sequence[str] = ("time_s",)) -> list[Caus
         In vocabulary order, with each cause's search bounds for ``stage``
         (:meth:`microctl.causes.Cause.fit_bounds`).
     """
-    if isinstance(has, bool):  # the former has_time flag
-        has = ("time_s",) if has else ()
     out: list[CauseSpec] = []
     for c in REGISTRY.values():
         if c.kind not in MEAN_KINDS or any(need not in has for need in c.needs):
