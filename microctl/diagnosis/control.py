@@ -21,17 +21,12 @@ from microctl.config import StageConfig
 from microctl.controller import ControllerSettings, OptimalController
 from microctl.diagnosis.data import DiagnosisData
 from microctl.eafm import EAFM
-from microctl.training import ResidualData, ResidualModelSettings, train_residual_model
+from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model
 
 __all__ = ["TARGET_FRACTIONS", "control_comparison"]
 
 #: Targets as fractions of the largest tool pose both EAFMs reach from the zero state.
 TARGET_FRACTIONS = (0.15, 0.35, 0.55)
-
-
-def _residual_data(data: DiagnosisData, afm: AnalyticForwardModel) -> ResidualData:
-    s_prev = np.column_stack([data.t_prev, data.q_prev])
-    return ResidualData(X=np.hstack([s_prev, data.u]), y=data.t - np.asarray(afm.t_of(data.u)), x_names=())
 
 
 def control_comparison(config: StageConfig, extended: StageConfig, data: DiagnosisData, *, seed: int = 0) -> dict:
@@ -62,7 +57,7 @@ def control_comparison(config: StageConfig, extended: StageConfig, data: Diagnos
     ctrls = {}
     for label, cfg in (("plain", config), ("extended", extended)):
         afm = AnalyticForwardModel(cfg.stage)
-        model = train_residual_model(_residual_data(data, afm), afm, ResidualModelSettings(seed=seed))
+        model = train_residual_model(residual_dataset(data, afm), afm, ResidualModelSettings(seed=seed))
         ctrls[label] = OptimalController(EAFM(afm, model), settings)
     zero = ctrls["plain"].afm.zero_state()
     # targets both models reach from the zero state, as fractions of the common positive range

@@ -89,8 +89,7 @@ def _fold_predictions(stage, afm, train, test, specs, theta0, nuisance0, frictio
     # extended noise model: the accepted noise causes refitted on the training residual
     J_tr = ext.predict_q(train.q, direction=train.direction, time_s=train.time_s).sensitivity
     nf = fit_noise(train.t - ext_tr, J_tr, train.dq, tuple(friction))
-    idx = [a - 1 for a in nf.friction]
-    var_ext = nf.std_um**2 + np.sum((pe.sensitivity[:, idx] * nf.std_per_um * test.dq[:, idx]) ** 2, axis=1)
+    var_ext = nf.variance(pe.sensitivity, test.dq)
     var_afm = float(np.mean((train.t - t_afm_tr) ** 2))
     out["afm"] = (t_afm_te, np.full(test.n, var_afm))
     out["extended"] = (ext_te, var_ext)
