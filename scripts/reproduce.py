@@ -211,7 +211,7 @@ def offsets_markdown(runs: list[tuple[int, dict]]) -> list[str]:
         a, e = inc["controllers"]["afm"], inc["controllers"]["eafm"]
         rv = [x / p for x, p in zip(a["vsse_um2"], P["vsse_um2"]["afm"])]
         rm = [x / p for x, p in zip(a["msse_um"], P["msse_um"]["afm"])]
-        zero = sum(abs(m) < 2 * s for m, s in zip(e["msse_um"], e["msse_stderr_um"]))
+        zero = sum(row["eafm_msse_within_2se"] for row in inc["tests"]["per_target"])
         bars = res.get("bars", {})
         L.append(f"| {offset} | {'yes' if _grows(a['msse_um']) else 'no'} | {'yes' if _grows(a['vsse_um2']) else 'no'} | "
                  f"{min(rv):.2g}–{max(rv):.2g} | {min(rm):.2g}–{max(rm):.2g} | {zero} of {len(e['msse_um'])} | "

@@ -25,7 +25,7 @@ from scipy.special import ndtr
 
 from microctl import stats
 from microctl.io import to_jsonable, write_json
-from microctl.experiments.bars import evaluate_bars
+from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
 
 #: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
@@ -94,6 +94,7 @@ def incremental_stats(inc: dict) -> dict:
     a, e = ctrls["afm"], ctrls["eafm"]
     t_msse = _test(stats.two_sample_t, np.abs(a["msse_um"]), np.abs(e["msse_um"]))
     t_vsse = _test(stats.two_sample_t, a["vsse_um2"], e["vsse_um2"])
+    zero = within_2se(e["msse_um"], e["msse_stderr_um"])
     per_target = []
     for j, t in enumerate(targets):
         row: dict[str, Any] = {
@@ -101,18 +102,13 @@ def incremental_stats(inc: dict) -> dict:
             "brown_forsythe_afm_vs_eafm": _test(stats.brown_forsythe, sse["afm"][:, j], sse["eafm"][:, j]),
             "welch_abs_sse_afm_vs_eafm": _test(lambda x, y: stats.two_sample_t(x, y, equal_var=False),
                                                np.abs(sse["afm"][:, j]), np.abs(sse["eafm"][:, j])),
-            "eafm_msse_within_2se": bool(abs(e["msse_um"][j]) < 2 * e["msse_stderr_um"][j]),
+            "eafm_msse_within_2se": bool(zero[j]),
             "eafm_msse_over_se": _ratio(e["msse_um"][j], e["msse_stderr_um"][j]),
         }
         if "oracle" in sse:
             row["brown_forsythe_oracle_vs_eafm"] = _test(stats.brown_forsythe, sse["oracle"][:, j], sse["eafm"][:, j])
         per_target.append(row)
-    ratios = {
-        "msse_afm_over_eafm": np.abs(a["msse_um"]) / np.maximum(np.abs(e["msse_um"]), 1e-12),
-        "vsse_afm_over_eafm": a["vsse_um2"] / np.maximum(e["vsse_um2"], 1e-12),
-    }
-    if "oracle" in ctrls:
-        ratios["vsse_eafm_over_oracle"] = e["vsse_um2"] / np.maximum(ctrls["oracle"]["vsse_um2"], 1e-12)
+    ratios = incremental_ratios(ctrls)
     return {
         "targets_um": targets.tolist(),
         "trials": int(inc["trials"]),
@@ -230,7 +226,7 @@ def _accuracy_lines(inc: dict) -> list[str]:
     T = inc["targets_um"]
     c = inc["controllers"]
     e = c["eafm"]
-    zero = [abs(m) < 2 * se for m, se in zip(e["msse_um"], e["msse_stderr_um"])]
+    zero = within_2se(e["msse_um"], e["msse_stderr_um"])
     per = ", ".join(f"{t:g} µm: {m:+.3f} ± {se:.3f} µm" for t, m, se in zip(T, e["msse_um"], e["msse_stderr_um"]))
     dist = [f"{t:g} µm" for t, z in zip(T, zero) if not z]
     same = [f"{t:g} µm" for t, z in zip(T, zero) if z]
