@@ -148,6 +148,18 @@ def make_rig(seed: int) -> tuple[StageConfig, int]:
 # --------------------------------------------------------------------------- one rig
 
 
+def train_on_rig(cfg: StageConfig, afm: AnalyticForwardModel, design: str, n: int, seed: int,
+                 settings: ResidualModelSettings):
+    """What a user runs: ``collect`` (n ``design`` moves on the rig, stage seed + 10000) to a
+    log, read it back, ``train`` the residual model with ``settings``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        log_path = Path(tmp) / "train.csv"
+        with SimulatedStage(cfg, seed=seed + 10_000) as stage:
+            run_collect(stage, training_moves(afm, design, n, seed), log_path, quiet=True)
+        data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
+    return train_residual_model(data, afm, settings)
+
+
 def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict:
     """Collect, train and solve on one rig for every size and method; score against the truth."""
     cfg, redraws = make_rig(seed)
@@ -157,40 +169,34 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
            "gauge_um": cfg.backend.simulated.gauge_noise_std_um,
            "friction": {f"q{e.actuator}": e.std_per_um for e in eff.actuator_friction},
            "gains": [g.gain for g in eff.actuator_gain], "runs": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        for n in sizes:
-            for name in methods:
-                meth = METHODS[name]
-                t0 = time.perf_counter()
-                log_path = Path(tmp) / f"{name}-{n}.csv"
-                moves = training_moves(afm, meth.design, n, seed)
-                with SimulatedStage(cfg, seed=seed + 10_000) as stage:
-                    run_collect(stage, moves, log_path, quiet=True)
-                data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
-                model = train_residual_model(data, afm, meth.model)
-                t_fit = time.perf_counter() - t0
-                eafm = EAFM(afm, model)
-                ctrl = OptimalController(eafm, meth.controller)
-                base = AFMController(afm)
-                rows = []
-                with SimulatedStage(cfg, seed=seed + 20_000) as stage:
-                    oracle = OracleController(afm, stage)
-                    prev = None
-                    for target in TARGETS_UM:
-                        s = stage.state
-                        res = ctrl.solve(target, s, u_init=prev)
-                        o = oracle.solve(target, s)
-                        a = base.solve(target, s)
-                        true_mean = float(stage.true_mean(s, res.u))
-                        true_std = math.sqrt(float(stage.true_var(s, res.u)))
-                        rows.append({"target_um": target, "err_um": true_mean - target, "std_um": true_std,
-                                     "oracle_std_um": o.predicted_std_um,
-                                     "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
-                                     "pred_std_um": res.predicted_std_um, "q_um": res.q.round(3).tolist(),
-                                     "oracle_q_um": o.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s})
-                        stage.move(res.u)
-                        prev = res.u
-                out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
+    for n in sizes:
+        for name in methods:
+            meth = METHODS[name]
+            t0 = time.perf_counter()
+            model = train_on_rig(cfg, afm, meth.design, n, seed, meth.model)
+            t_fit = time.perf_counter() - t0
+            eafm = EAFM(afm, model)
+            ctrl = OptimalController(eafm, meth.controller)
+            base = AFMController(afm)
+            rows = []
+            with SimulatedStage(cfg, seed=seed + 20_000) as stage:
+                oracle = OracleController(afm, stage)
+                prev = None
+                for target in TARGETS_UM:
+                    s = stage.state
+                    res = ctrl.solve(target, s, u_init=prev)
+                    o = oracle.solve(target, s)
+                    a = base.solve(target, s)
+                    true_mean = float(stage.true_mean(s, res.u))
+                    true_std = math.sqrt(float(stage.true_var(s, res.u)))
+                    rows.append({"target_um": target, "err_um": true_mean - target, "std_um": true_std,
+                                 "oracle_std_um": o.predicted_std_um,
+                                 "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
+                                 "pred_std_um": res.predicted_std_um, "q_um": res.q.round(3).tolist(),
+                                 "oracle_q_um": o.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s})
+                    stage.move(res.u)
+                    prev = res.u
+            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
     return out
 
 

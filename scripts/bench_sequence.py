@@ -56,7 +56,6 @@ import json
 import os
 import platform
 import sys
-import tempfile
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -69,17 +68,14 @@ from scipy.optimize import minimize
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_rigs import TARGETS_UM, make_rig  # noqa: E402
+from bench_rigs import TARGETS_UM, make_rig, train_on_rig  # noqa: E402
 from microctl.afm import AnalyticForwardModel  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
-from microctl.collect import run_collect  # noqa: E402
 from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
-from microctl.design import training_moves  # noqa: E402
 from microctl.eafm import EAFM  # noqa: E402
 from microctl.experiments.oracle import OracleSequenceController  # noqa: E402
-from microctl.measurement_log import read_log  # noqa: E402
 from microctl.sequence import SequenceController  # noqa: E402
-from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model  # noqa: E402
+from microctl.training import ResidualModelSettings  # noqa: E402
 
 ABOVE_BAR, BELOW_BAR, TIME_BAR_MS = 1.02, 0.80, 100.0
 CUMULATIVE_GAP = 1.10
@@ -90,12 +86,7 @@ def train(seed: int, moves: int) -> tuple:
     """bench_rigs' training path: covering moves on the rig, the default residual model."""
     cfg, _ = make_rig(seed)
     afm = AnalyticForwardModel(cfg.stage)
-    with tempfile.TemporaryDirectory() as tmp:
-        log_path = Path(tmp) / "train.csv"
-        with SimulatedStage(cfg, seed=seed + 10_000) as stage:
-            run_collect(stage, training_moves(afm, "covering", moves, seed), log_path, quiet=True)
-        data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
-    return cfg, afm, EAFM(afm, train_residual_model(data, afm, ResidualModelSettings()))
+    return cfg, afm, EAFM(afm, train_on_rig(cfg, afm, "covering", moves, seed, ResidualModelSettings()))
 
 
 # --------------------------------------------------------------------------- part 1: rigs
