@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from microctl.diagnosis.selection import cause_label
+
 
 def write_figures(diagnosis, out: Path) -> dict:
     """Write residuals.png, causes.png and gain.png.
@@ -76,8 +78,7 @@ def _causes(plt, dg, path: Path) -> Path:
     rep = dg.report
     entries = [e for e in rep["mean_causes"] + rep["noise_causes"]
                if e.get("delta_bic") is not None and e["cause"] != "homoscedastic"]
-    labels = [e["cause"] + (f"[{e['params']['actuator']}]" if "actuator" in e["params"] else "")
-              + (" (withdrawn)" if e.get("withdrawn") else "") for e in entries]
+    labels = [cause_label(e) + (" (withdrawn)" if e.get("withdrawn") else "") for e in entries]
     vals = [e["delta_bic"] for e in entries]
     fig, ax = plt.subplots(figsize=(7, 0.25 * max(len(labels), 4) + 1.2))
     colors = ["tab:green" if e.get("accepted") else ("tab:orange" if e.get("withdrawn") else "tab:gray")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from microctl.diagnosis.selection import cause_label
 from microctl.io import to_jsonable, write_json
 
 #: Extra measurement that tells apart causes a single scalar gauge cannot (docs/diagnosis.md).
@@ -34,12 +35,6 @@ _DEFAULT_SEPARATION = (
 def separating_measurement(a: str, b: str) -> str:
     """The measurement that would separate cause ``a`` from cause ``b`` (plain text)."""
     return SEPARATING_MEASUREMENT.get(frozenset({a, b}), _DEFAULT_SEPARATION)
-
-
-def cause_label(e: dict) -> str:
-    """``cause[actuator]`` of a report entry (``cause`` for a global one)."""
-    a = e.get("params", {}).get("actuator")
-    return e["cause"] if a is None else f"{e['cause']}[{a}]"
 
 
 def add_identifiability(report: dict) -> None:

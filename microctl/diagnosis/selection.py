@@ -222,8 +222,7 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
     # the other candidates of the first step, against the configured model, best first
     first = steps[0]
     if first.fits:
-        listed = {e["cause"] + (f"[{e['params']['actuator']}]" if "actuator" in e["params"] else "")
-                  for e in out} | set().union(*[set(s.equivalent) for s in steps])
+        listed = {cause_label(e) for e in out} | set().union(*[set(s.equivalent) for s in steps])
         for k, f in sorted(first.fits.items(), key=lambda kv: kv[1].bic):
             if k in listed:
                 continue
@@ -250,19 +249,21 @@ def withdraw(sel: Selection, keys: Sequence[str], stage: Stage, data: DiagnosisD
                      weights=weights)
     entries = _entries(final, sel.steps, kept)
     gone = []
-    accepted_at = {_entry_key(e): e for e in sel.entries if e.get("accepted")}
+    accepted_at = {cause_label(e): e for e in sel.entries if e.get("accepted")}
     for s, th, se in sel.final.split():
         if s.key in keys:
             e = accepted_at.get(s.key, {})
             gone.append(cause_entry(s, th, se, delta_bic=e.get("delta_bic"), rank_deficient=bool(sel.final.rank_deficient),
                                     equivalent=e.get("equivalent", []), accepted=False, withdrawn=reason))
     entries = entries[:len(kept)] + gone + [e for e in entries[len(kept):]
-                                            if _entry_key(e) not in keys]
+                                            if cause_label(e) not in keys]
     return replace(sel, final=final, accepted=kept, entries=entries, withdrawn=tuple(sel.withdrawn) + tuple(keys))
 
 
-def _entry_key(e: dict) -> str:
-    a = e["params"].get("actuator")
+def cause_label(e: dict) -> str:
+    """``cause[actuator]`` of a report entry (``cause`` for a global one): how entries are named
+    and matched in the selection, the report and the figures."""
+    a = e.get("params", {}).get("actuator")
     return e["cause"] if a is None else f"{e['cause']}[{a}]"
 
 
