@@ -25,13 +25,13 @@ shared/spec/diagnosis.md step 3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from functools import cached_property, lru_cache
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from microctl.afm import inverse_kinematics_matrix
-from microctl.config import Effects, Physics, Stage
+from microctl.config import Effects, Stage
 from microctl.physics import (
     ZERO_STATE_DIRECTION,
     actual_positions,
@@ -78,13 +78,6 @@ class ExtendedPrediction:
         return tool_sensitivity(self.model, self.p, self.active)
 
 
-@lru_cache(maxsize=32)
-def _cad_inverse_kinematics(stage: Stage) -> np.ndarray:
-    K = inverse_kinematics_matrix(stage)
-    K.setflags(write=False)
-    return K
-
-
 class ExtendedForwardModel:
     """Stage model + corrections (static and dynamic) through the contact physics.
 
@@ -106,9 +99,15 @@ class ExtendedForwardModel:
     def __init__(self, stage: Stage, effects: Effects | None = None):
         self.stage = stage
         self.effects = stage.corrections if effects is None else effects
-        # q = K u from the CAD geometry (what the drivers get), whatever the physics and corrections
-        self.K = _cad_inverse_kinematics(replace(stage, physics=Physics(), corrections=Effects()))
         self.model = contact_model(stage, self.effects)
+
+    @cached_property
+    def K(self) -> np.ndarray:
+        """q = K u from the CAD geometry (what the drivers get), whatever the physics and
+        corrections (read-only; computed on first use: the diagnosis's fits never need it)."""
+        K = inverse_kinematics_matrix(self.stage)
+        K.setflags(write=False)
+        return K
 
     @property
     def n_s(self) -> int:
