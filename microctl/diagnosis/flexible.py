@@ -32,6 +32,8 @@ cause is a full nonlinear refit.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Callable
 
 import numpy as np
 from scipy import stats
@@ -54,15 +56,20 @@ class Leftover:
         2 × the smaller p-value (Bonferroni).
     f_test, gp_test : Test
         F-test against the generic basis; GP likelihood ratio against white noise.
-    gp : GPFit
-        The GP fitted to the residual after the basis (F's smooth part).
+    gp : GPFit or None
+        When significant, the GP fitted to the residual after the basis (F's smooth part);
+        fitted on first use (several L-BFGS starts, O(n^3)), as most leftovers are only tested.
     """
 
     significant: bool
     p_value: float
     f_test: Test
     gp_test: Test
-    gp: GPFit | None = None
+    fit_gp: Callable[[], GPFit] | None = field(default=None, repr=False)
+
+    @cached_property
+    def gp(self) -> GPFit | None:
+        return None if self.fit_gp is None else self.fit_gp()
 
     def tests(self) -> list[dict]:
         """Report form of the two tests."""
@@ -95,11 +102,12 @@ def leftover(resid: np.ndarray, data: DiagnosisData, k_fitted: int, weights: np.
     f = structure_f_test(resid, data, k_fitted, weights)
     gp_t, _ = gp_lr_test(resid, gp_inputs(data), seed=seed)
     p = float(min(1.0, 2 * min(f.p_value, gp_t.p_value)))
-    gp = None
-    if p < alpha:
+
+    def fit_smooth_part() -> GPFit:
         B = generic_basis(data) * (1.0 if weights is None else weights[:, None])
-        gp = fit_gp(gp_inputs(data), _ols_resid(B, resid), seed=seed)
-    return Leftover(p < alpha, p, f, gp_t, gp)
+        return fit_gp(gp_inputs(data), _ols_resid(B, resid), seed=seed)
+
+    return Leftover(p < alpha, p, f, gp_t, fit_smooth_part if p < alpha else None)
 
 
 @dataclass(frozen=True, eq=False)
