@@ -247,19 +247,29 @@ def _rules(cls: type) -> list[tuple[str, Rule]]:
     return [(f.name, f.metadata["rule"]) for f in fields(cls) if "rule" in f.metadata]
 
 
+class SettingError(ConfigError):
+    """A settings field breaks its rule: ``"<what> <field>: <reason>"``; ``field`` and ``reason``
+    let a caller name the field its own way (a command-line option)."""
+
+    def __init__(self, what: str, field_name: str, reason: str):
+        super().__init__(f"{what} {field_name}: {reason}")
+        self.field = field_name
+        self.reason = reason
+
+
 def validate_settings(obj: Any, what: str) -> None:
     """Check every :func:`setting` field of a dataclass instance (call from ``__post_init__``).
 
     Raises
     ------
-    ConfigError
+    SettingError
         ``"<what> <field>: must be ..., got ..."``.
     """
     for name, rule in _rules(type(obj)):
         try:
             rule.check(getattr(obj, name))
         except ValueError as exc:
-            raise ConfigError(f"{what} {name}: {exc}") from None
+            raise SettingError(what, name, str(exc)) from None
 
 
 def read_settings(ck: FieldReader, raw: Any, path: str, cls: type, **fixed: Any) -> Any:

@@ -10,6 +10,7 @@ from microctl.afm import AnalyticForwardModel
 from microctl.commands._common import add_quiet, add_seed, check_output_file
 from microctl.config import load_stage_config
 from microctl.errors import ConfigError
+from microctl.fields import SettingError
 from microctl.measurement_log import read_log
 from microctl.training import NOISE_MODELS, ResidualModelSettings, noise_summary, residual_dataset, train_residual_model
 
@@ -50,9 +51,8 @@ def _run(args: argparse.Namespace) -> int:
     try:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed)
-    except ConfigError as exc:  # name the option, not the field: "residual model setting restarts: ..."
-        field = str(exc).removeprefix("residual model setting ").split(":", 1)[0]
-        raise ConfigError(f"--{field.replace('_', '-')}:{str(exc).split(':', 1)[1]}") from None
+    except SettingError as exc:  # name the option, not the field
+        raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
