@@ -861,8 +861,9 @@ class FittedVHGPR:
         for name in _ARRAY_FIELDS + _OPTIONAL_ARRAY_FIELDS:
             if kw.get(name) is not None:
                 _freeze(kw[name])
-        _check_model_values(path, kw)
-        return cls(**kw)
+        model = cls(**kw)
+        _check_model_values(path, kw, model)
+        return model
 
 
 # --------------------------------------------------------------------------- the trainer
@@ -1338,8 +1339,9 @@ def _open_model_file(path: Path) -> Any:
     return npz
 
 
-def _check_model_values(path: Path, kw: dict) -> None:
-    """Refuse a loaded model whose numbers cannot come from a fit (called at the end of load).
+def _check_model_values(path: Path, kw: dict, model: FittedVHGPR) -> None:
+    """Refuse a loaded model (``model``, built from the arrays ``kw``) whose numbers cannot come
+    from a fit (called at the end of load).
 
     Checked, each failure one :class:`DataError` naming the file and the array:
 
@@ -1357,10 +1359,10 @@ def _check_model_values(path: Path, kw: dict) -> None:
       and at most :data:`_MAX_MODEL_VARIANCE` (a huge variance overflows later, in solve).
     """
     with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
-        _check_model_arrays(path, kw)  # inf/nan from absurd values fail the checks; no RuntimeWarning
+        _check_model_arrays(path, kw, model)  # inf/nan from absurd values fail the checks; no RuntimeWarning
 
 
-def _check_model_arrays(path: Path, kw: dict) -> None:
+def _check_model_arrays(path: Path, kw: dict, model: FittedVHGPR) -> None:
     """The checks of :func:`_check_model_values` (NumPy floating-point warnings silenced)."""
     import re
 
@@ -1413,9 +1415,7 @@ def _check_model_arrays(path: Path, kw: dict) -> None:
                        "not the standardised 0 and 1 of a fit; the file was edited or assembled from two models, "
                        "retrain it")
     rows = np.unique(np.linspace(0, n - 1, min(n, _N_CHECK_ROWS)).astype(int))
-    kernels = {"f": Kernel(kw["f_log_lengthscales"], kw["f_log_signal_var"], kw["f_log_bias_var"],
-                           kw.get("f_log_linear_vars")),
-               "g": Kernel(kw["g_log_lengthscales"], kw["g_log_signal_var"], kw["g_log_bias_var"])}
+    kernels = {"f": model.f_kernel, "g": model.g_kernel}
     for label, L in (("f", Lf), ("g", Lg)):
         G = L[rows] @ L.T  # rows of L Lᵀ
         Kr = kernels[label].matrix(X[rows], X)
@@ -1446,7 +1446,6 @@ def _check_model_arrays(path: Path, kw: dict) -> None:
             raise fail(f"the model's {what} variance far from the data is e^{log_var:.4g} (units of y²), beyond "
                        f"{_MAX_MODEL_VARIANCE:g} (y_scale = {kw['y_scale']:g}); later arithmetic would overflow: the "
                        "file is corrupt or the fit diverged, retrain it")
-    model = FittedVHGPR(**kw)
     X_orig = X[rows] * kw["x_scale"] + kw["x_mean"]
     try:
         with np.errstate(over="raise", invalid="raise"):
