@@ -23,6 +23,7 @@ expressions against fixed training inputs (:meth:`Kernel.casadi_column`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import casadi as ca
@@ -100,13 +101,18 @@ class KernelSpec:
                       log_linear_vars=log_v)
 
     def bounds(self, ls: tuple[float, float], sf2: tuple[float, float], bias: tuple[float, float],
-               linear: tuple[float, float]) -> list[tuple[float, float]]:
-        """Box bounds of the block, from the bounds of each kind of hyperparameter."""
+               linear: tuple[float, float], affine: Sequence[tuple[float, float]] | None = None
+               ) -> list[tuple[float, float]]:
+        """Box bounds of the block, from the bounds of each kind of hyperparameter; ``affine``
+        (d + 1 pairs), for a kernel with a linear part, replaces those of [bias, linear (d)]
+        (the affine trend's prior variances, fixed or free)."""
         out = [ls] * self.d + [sf2]
         if self.bias:
             out.append(bias)
         if self.linear:
             out += [linear] * self.d
+            if affine is not None:
+                out[-self.d - 1:] = list(affine)
         return out
 
 

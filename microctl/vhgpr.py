@@ -194,9 +194,7 @@ class _Layout:
     def bounds(self) -> list[tuple[float, float]]:
         kb = {k: _BOUNDS[v] for k, v in (("ls", "log_lengthscale"), ("sf2", "log_signal_var"),
                                           ("bias", "log_bias_var"), ("linear", "log_linear_var"))}
-        fb = self.f.bounds(**kb)
-        if self.f.linear and self.linear_bounds is not None:  # [bias, linear (d)] of an affine trend
-            fb[-self.f.d - 1:] = list(self.linear_bounds)
+        fb = self.f.bounds(**kb, affine=self.linear_bounds)
         if self.se_off:
             ls_hi, sf2_lo = _BOUNDS["log_lengthscale"][1], _BOUNDS["log_signal_var"][0]
             fb[: self.f.d + 1] = [(ls_hi, ls_hi)] * self.f.d + [(sf2_lo, sf2_lo)]
@@ -437,9 +435,7 @@ def _fit_homoscedastic(X: np.ndarray, y: np.ndarray, spec: KernelSpec, rng: np.r
         idx = np.sort(rng.choice(n, _INIT_SUBSET, replace=False))
         X, y = X[idx], y[idx]
     bounds = spec.bounds(_BOUNDS["log_lengthscale"], _BOUNDS["log_signal_var"], _BOUNDS["log_bias_var"],
-                         _BOUNDS["log_linear_var"]) + [_BOUNDS["log_noise_var"]]
-    if spec.linear and linear_bounds is not None:  # [bias, linear (d)] of an affine trend
-        bounds[spec.size - spec.d - 1: spec.size] = list(linear_bounds)
+                         _BOUNDS["log_linear_var"], affine=linear_bounds) + [_BOUNDS["log_noise_var"]]
     best = None
     # Two starts: "smooth, little noise" and "rough, more noise" (standardised units).
     for ls0, sn0 in ((0.0, -2.0), (-1.5, -1.0)):
