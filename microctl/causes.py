@@ -29,7 +29,7 @@ Adding a cause is one subclass decorated with :func:`register`, plus its tests.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, make_dataclass, replace
-from typing import TYPE_CHECKING, Any, ClassVar, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -614,10 +614,11 @@ Effects = make_dataclass(
 )
 
 
-def nuisances() -> tuple[Nuisance, ...]:
-    """Every nuisance some registered cause declares (each once)."""
+def nuisances(causes: Iterable[Any] | None = None) -> tuple[Nuisance, ...]:
+    """Every nuisance the ``causes`` (anything with a ``nuisance`` tuple: cause classes, fit
+    specs; default every registered cause) declare, each once, in order."""
     out: list[Nuisance] = []
-    for c in REGISTRY.values():
+    for c in REGISTRY.values() if causes is None else causes:
         out += [n for n in c.nuisance if n not in out]
     return tuple(out)
 

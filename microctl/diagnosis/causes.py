@@ -144,13 +144,6 @@ def merge_effects(base: Effects, items: Sequence[tuple[CauseSpec, Sequence[float
     return base.with_(*(spec.effect(theta) for spec, theta in items))
 
 
-def _nuisances(specs: Sequence[CauseSpec]) -> tuple[Nuisance, ...]:
-    out: list[Nuisance] = []
-    for s in specs:
-        out += [n for n in s.nuisance if n not in out]
-    return tuple(out)
-
-
 def with_nuisance(stage: Stage, values: dict[str, float]) -> Stage:
     """``stage`` with fitted nuisance values (name -> value) applied."""
     for nu in nuisances():
@@ -322,7 +315,7 @@ def fit_mean(
     w = np.ones(data.n) if weights is None else np.asarray(weights, dtype=float)
     w2 = w * w
     cuts = np.cumsum([0, *[s.k for s in specs]])
-    nuis = _nuisances(specs)
+    nuis = nuisances(specs)
     k_par = int(cuts[-1])
 
     def zero_of(pred: np.ndarray) -> float:
