@@ -226,30 +226,31 @@ class SequenceController(EAFMController):
         S = self._states(s0, targets, U)
         return np.array([self.objective.r_np(self.eafm, S[k], U[k][None, :])[0] for k in range(len(targets))])
 
-    def _refine_path(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray | None:
-        """Check each move in order (Newton along w if needed); None if one fails."""
+    def _walk(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray, step) -> np.ndarray | None:
+        """A copy of the path U with each pose replaced by ``step(s, u, t)`` from the path's own
+        previous state s = [t_{k-1}; K u_{k-1}], in order; None as soon as a step returns None."""
         U = U.copy()
         s = s0
         for k, t in enumerate(targets):
-            u = self._refine(s, U[k], float(t))
+            u = step(s, U[k], float(t))
             if u is None:
                 return None
             U[k] = u
             s = np.concatenate([[t], self.afm.K @ u])
         return U
 
+    def _refine_path(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray | None:
+        """Check each move in order (Newton along w if needed); None if one fails."""
+        return self._walk(s0, targets, U, self._refine)
+
     def _project_path(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray | None:
         """Move each pose of a path onto its surface from the path's own previous state (Newton
         along w, in order); None when a pose then lies outside the ranges or off the surface."""
-        U = U.copy()
-        s = s0
-        for k, t in enumerate(targets):
-            Un, res = self._newton(s, U[k][None, :], float(t))
-            if res[0] > 1e-6 * max(1.0, abs(float(t))) or not self._in_range(Un[0]):
-                return None
-            U[k] = Un[0]
-            s = np.concatenate([[t], self.afm.K @ U[k]])
-        return U
+        def project(s: np.ndarray, u: np.ndarray, t: float) -> np.ndarray | None:
+            Un, res = self._newton(s, u[None, :], t)
+            return None if res[0] > 1e-6 * max(1.0, abs(t)) or not self._in_range(Un[0]) else Un[0]
+
+        return self._walk(s0, targets, U, project)
 
     # ---- seeding: dynamic programming over the redundant sets -------------------------
     def _dp(self, s0: np.ndarray, targets: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, np.ndarray,
@@ -420,13 +421,12 @@ class SequenceController(EAFMController):
             for i in mins[: 3 * cfg.n_polish]:
                 path = self._refine_path(s0, targets, self._backtrack(cand, back, int(pos[i])))
                 if path is not None:
-                    best = (self._value(self._plan_r(s0, targets, path)), path, f"{status}; fallback to seed",
-                            float(value_grid[i]), False)
+                    r = self._plan_r(s0, targets, path)
+                    best = (self._value(r), path, f"{status}; fallback to seed", float(value_grid[i]), False, r)
                     break
         if best is None:
             raise SolveError(f"no valid command sequence for targets {targets.tolist()} µm (IPOPT: {status})")
-        _, U, st, seed_value, warm_used = best
-        r = self._plan_r(s0, targets, U)
+        _, U, st, seed_value, warm_used, r = best
         S = self._states(s0, targets, U)
         self._last_attempts = attempts
         dt = time.perf_counter() - t0
@@ -439,8 +439,9 @@ class SequenceController(EAFMController):
             warm_started=bool(warm_used), solve_time_s=dt)
 
     def _polish(self, s0: np.ndarray, targets: np.ndarray, starts: list[tuple[np.ndarray, bool]],
-                attempts: dict) -> tuple[float, np.ndarray, str, float, bool] | None:
-        """IPOPT from each start path; the best one passing the checks (value, U, status, seed, warm)."""
+                attempts: dict) -> tuple[float, np.ndarray, str, float, bool, np.ndarray] | None:
+        """IPOPT from each start path; the best one passing the checks (value, U, status, seed,
+        warm, r_e per move)."""
         T = len(targets)
         solver, _ = self._nlp(T)
         afm = self.afm
@@ -451,7 +452,7 @@ class SequenceController(EAFMController):
         if self.mode == "max":
             lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
             lbg, ubg = np.append(lbg, np.full(T, -np.inf)), np.append(ubg, np.zeros(T))
-        best: tuple[float, np.ndarray, str, float, bool] | None = None
+        best: tuple[float, np.ndarray, str, float, bool, np.ndarray] | None = None
         for U0, warm in starts:
             r0 = self._plan_r(s0, targets, U0)
             jref = float(np.sum(r0) if self.mode == "sum" else np.max(r0))
@@ -468,7 +469,8 @@ class SequenceController(EAFMController):
             U = self._refine_path(s0, targets, x[: T * afm.n_p].reshape(T, afm.n_p))
             if U is None:
                 continue
-            v = self._value(self._plan_r(s0, targets, U))
+            r = self._plan_r(s0, targets, U)
+            v = self._value(r)
             if best is None or v < best[0]:
-                best = (v, U, st["status"], self._value(r0), warm)
+                best = (v, U, st["status"], self._value(r0), warm, r)
         return best
