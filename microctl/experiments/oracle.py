@@ -97,12 +97,25 @@ class OracleController:
         q = U @ self.afm.K.T
         return np.all((q >= self.afm.lo - tol) & (q <= self.afm.hi + tol), axis=1)
 
+    def _feasible(self, s: np.ndarray, U: np.ndarray, D: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+        """The rows of U moved (along the rows of D) onto true_mean(s, .) = target, and which of
+        them reach it and lie in range (bool, shape (m,))."""
+        U, res = self._project(s, U, D, target)
+        return U, (res <= _CONSTRAINT_TOL * max(1.0, abs(target))) & self._in_range(U)
+
+    def _zoom_grid(self, u: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """A 9 x 9 grid (null-space coordinates, ±2 ``step``) around the pose u, shape (81, n_p)."""
+        rs = self.rset
+        c0 = (u / rs.D) @ rs.N
+        axes = [np.linspace(c - 2 * h, c + 2 * h, 9) for c, h in zip(c0, step)]
+        C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, rs.N.shape[1])
+        return (C @ rs.N.T) * rs.D + (u / rs.D @ rs.v_hat) * rs.v_hat * rs.D
+
     def _evaluate(self, s: np.ndarray, U: np.ndarray, D: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
         """Project candidates and score them; infeasible ones get +inf."""
         if U.shape[0] == 0:
             return U, np.zeros(0)
-        U, res = self._project(s, U, D, target)
-        ok = (res <= _CONSTRAINT_TOL * max(1.0, abs(target))) & self._in_range(U)
+        U, ok = self._feasible(s, U, D, target)
         obj = np.full(U.shape[0], np.inf)
         if np.any(ok):
             obj[ok] = self._var(s, U[ok])
@@ -188,10 +201,7 @@ class OracleController:
         step = np.max(np.abs((U[np.isfinite(obj)] / rs.D) @ N), axis=0) / max(self.grid - 1, 1) * 2.0
         for _ in range(self.zooms):
             k = int(np.argmin(obj))
-            c0 = (U[k] / rs.D) @ N
-            axes = [np.linspace(c - 2 * h, c + 2 * h, 9) for c, h in zip(c0, step)]
-            C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, N.shape[1])
-            Uz = (C @ N.T) * rs.D + (U[k] / rs.D @ rs.v_hat) * rs.v_hat * rs.D
+            Uz = self._zoom_grid(U[k], step)
             Dz = np.repeat(rs.dir_u[None, :], Uz.shape[0], axis=0)
             # keep the best candidate's own direction too (it may be a still-actuator point)
             Uz2, obj2 = self._evaluate(s, Uz, Dz, target)
@@ -267,8 +277,7 @@ class OracleSequenceController:
         """The rows of U moved (along the rows of D) onto true_mean(s, .) = target and in range."""
         if U.shape[0] == 0:
             return U
-        U, res = self.one._project(s, U, D, target)
-        ok = (res <= _CONSTRAINT_TOL * max(1.0, abs(target))) & self.one._in_range(U)
+        U, ok = self.one._feasible(s, U, D, target)
         return U[ok]
 
     def _lines(self, s_prev: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
@@ -280,8 +289,10 @@ class OracleSequenceController:
             Ds.append(D)
         return np.vstack(Us), np.vstack(Ds)
 
-    def _dp(self, s0: np.ndarray, targets: np.ndarray, sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Best path over the candidate sets (T arrays of poses) and its per-move true variance."""
+    def _dp(self, s0: np.ndarray, targets: np.ndarray, sets: list[np.ndarray]
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Best path over the candidate sets (T arrays of poses), its per-move true variance and
+        the states it moves from, shapes (T, n_p), (T,), (T, n_s)."""
         K = self.afm.K
         T = len(targets)
         prev = s0[None, :]
@@ -305,7 +316,7 @@ class OracleSequenceController:
             j = int(back[k][j])
         S = self._states(s0, targets, path)
         var = np.array([float(self.one._var(S[k], path[k][None, :])[0]) for k in range(T)])
-        return path, var
+        return path, var, S
 
     def _states(self, s0: np.ndarray, targets: np.ndarray, path: np.ndarray) -> np.ndarray:
         """s_0..s_{T-1} of a path, shape (T, n_s)."""
@@ -352,7 +363,7 @@ class OracleSequenceController:
             Uk = self._candidates(s_nom, t, U, D)
             sets.append(np.vstack([greedy[None, :], Uk]))
             s_nom = np.concatenate([[t], K @ greedy])
-        path, var = self._dp(s0, targets, sets)
+        path, var, S = self._dp(s0, targets, sets)
         N = rs.N
         spacing = np.max(np.abs(np.vstack([(S / rs.D) @ N for S in sets])), axis=0) / max(self.one.grid - 1, 1) * 2.0
         for _ in range(self.one.zooms):
@@ -360,18 +371,14 @@ class OracleSequenceController:
             for k, t in enumerate(targets):
                 t = float(t)
                 s_prev = s0 if k == 0 else np.concatenate([[targets[k - 1]], K @ path[k - 1]])
-                c0 = (path[k] / rs.D) @ N
-                axes = [np.linspace(c - 2 * h, c + 2 * h, 9) for c, h in zip(c0, spacing)]
-                C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, N.shape[1])
-                Uz = (C @ N.T) * rs.D + (path[k] / rs.D @ rs.v_hat) * rs.v_hat * rs.D
+                Uz = self.one._zoom_grid(path[k], spacing)
                 L, DL = self.one._still_lines(s_prev, t, self.one.line_points, None)
                 U = np.vstack([Uz, L])
                 D = np.vstack([np.repeat(rs.dir_u[None, :], Uz.shape[0], axis=0), DL])
                 sets.append(np.vstack([path[k][None, :], self._candidates(s_prev, t, U, D)]))
-            path, var = self._dp(s0, targets, sets)
+            path, var, S = self._dp(s0, targets, sets)
             spacing = spacing / 2.0
         out = []
-        S = self._states(s0, targets, path)
         dt = time.perf_counter() - t0
         for k, t in enumerate(targets):
             mean = float(self.one._mean(S[k], path[k][None, :])[0])
