@@ -39,6 +39,9 @@ class StageBackend(abc.ABC):
         CAD inverse kinematics q = K u (eq. 12): what the drivers are sent.
     w : ndarray, shape (n_p,)
         CAD tool map (eq. 13).
+    notes : list of str
+        What the backend found at connect that the user should know (the serial backend's
+        start state and tare; empty for the simulator).
     """
 
     def __init__(self, config: StageConfig):
@@ -50,6 +53,7 @@ class StageBackend(abc.ABC):
         self.range_hi = config.stage.range_hi
         self._state = np.zeros(1 + config.stage.n_act)
         self._closed = False
+        self.notes: list[str] = []
 
     # ---- state ---------------------------------------------------------------------
     @property

@@ -53,6 +53,11 @@ _MAX_REPLY_LINES = 64
 POSITION_TOLERANCE_UM = 0.01
 
 
+def _finite_decimal(text: str) -> bool:
+    """Whether a device's reply field is a finite decimal number (a position, a gauge reading)."""
+    return NUMBER_PATTERN.fullmatch(text) is not None and bool(np.isfinite(float(text)))
+
+
 class _Port:
     """One serial device: a name for messages, the pyserial port and the line ending."""
 
@@ -147,7 +152,6 @@ class SerialStage(StageBackend):
         self._t0 = time.monotonic()
         self._offset = 0.0
         self.tare_um = 0.0
-        self.notes: list[str] = []
         try:
             for c in ser.controllers:
                 self._ports[c.name] = _Port(f"controller '{c.name}'", c.url, c.baudrate, c.timeout_s, b"\n")
@@ -255,10 +259,7 @@ class SerialStage(StageBackend):
 
     def _positions(self, controller: str, axes: list[str]) -> dict[str, float]:
         """``POS?`` of ``axes``, µm (finite decimal numbers)."""
-        def valid(v: str) -> bool:
-            return NUMBER_PATTERN.fullmatch(v) is not None and np.isfinite(float(v))
-
-        values = self._query_axes(controller, "POS?", axes, "position", "'<axis>=<pos_um>' lines", valid)
+        values = self._query_axes(controller, "POS?", axes, "position", "'<axis>=<pos_um>' lines", _finite_decimal)
         return {a: float(v) for a, v in values.items()}
 
     def _check_start_positions(self, q0: np.ndarray) -> None:
@@ -353,7 +354,7 @@ class SerialStage(StageBackend):
                 if m is not None:
                     number = (m.group(1) if self._pattern.groups else m.group(0)) or ""
                     number = number.strip()
-                    if NUMBER_PATTERN.fullmatch(number) and np.isfinite(float(number)):
+                    if _finite_decimal(number):
                         value = float(number)
                 if value is not None:
                     break

@@ -42,7 +42,7 @@ def _run(args: argparse.Namespace) -> int:
     afm = AnalyticForwardModel(config.stage)
     moves = training_moves(afm, args.design, args.n, args.seed)
     with make_backend(config) as backend:
-        for note in getattr(backend, "notes", ()):
+        for note in backend.notes:
             if not args.quiet:
                 print(f"collect: {note}", file=sys.stderr)
         n = run_collect(backend, moves, args.out, quiet=args.quiet)
