@@ -6,6 +6,7 @@ variational heteroscedastic Gaussian process (VHGPR), and an optimal controller 
 reaches a target tool pose with the smallest predicted noise variance.
 """
 
+from microctl._version import __version__
 from microctl.errors import (
     BackendError,
     ConfigError,
@@ -15,7 +16,6 @@ from microctl.errors import (
     UnreachableTargetError,
 )
 
-__version__ = "0.1.0"
 
 __all__ = [
     "BackendError",

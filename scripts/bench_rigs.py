@@ -57,18 +57,26 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from microctl.afm import AnalyticForwardModel  # noqa: E402
+from microctl.backends.collect import run_collect  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
-from microctl.collect import run_collect  # noqa: E402
-from microctl.config import StageConfig, parse_stage_config  # noqa: E402
-from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
-from microctl.design import training_moves  # noqa: E402
-from microctl.eafm import EAFM  # noqa: E402
-from microctl.experiments.oracle import OracleController  # noqa: E402
-from microctl.measurement_log import read_log  # noqa: E402
-from microctl.physics import actual_positions, ball_heights, solve_equilibrium  # noqa: E402
-from microctl.controller import RedundantSet  # noqa: E402
-from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model  # noqa: E402
+from microctl.control.controller import (  # noqa: E402
+    AFMController,
+    ControllerSettings,
+    OptimalController,
+    RedundantSet,  # noqa: E402
+)
+from microctl.control.oracle import OracleController  # noqa: E402
+from microctl.measurement.design import training_moves  # noqa: E402
+from microctl.measurement.log import read_log  # noqa: E402
+from microctl.models.afm import AnalyticForwardModel  # noqa: E402
+from microctl.models.eafm import EAFM  # noqa: E402
+from microctl.models.training import (  # noqa: E402
+    ResidualModelSettings,
+    residual_dataset,
+    train_residual_model,
+)
+from microctl.stage.config import StageConfig, parse_stage_config  # noqa: E402
+from microctl.stage.physics import actual_positions, ball_heights, solve_equilibrium  # noqa: E402
 
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
 STD_BAR, ERR_BAR_UM, CAL_BAR = 1.25, 0.1, (0.67, 1.5)

@@ -7,14 +7,14 @@ the default residual model), the targets 6, 12, 18, 24 µm are reached in sequen
 state on a fresh simulated stage (the same stage seed for every controller: common random
 numbers) by
 
-- ``greedy``: :class:`~microctl.controller.OptimalController` (eq. 4 move by move, each from the
+- ``greedy``: :class:`~microctl.control.controller.OptimalController` (eq. 4 move by move, each from the
   state the previous executed move left, warm-started with the previous command);
-- ``sequence``: :class:`~microctl.sequence.SequenceController` (the cumulative r_e), planning the
+- ``sequence``: :class:`~microctl.control.sequence.SequenceController` (the cumulative r_e), planning the
   whole list from the zero state and re-planning the remaining targets after each executed move
   from the measured state, warm-started with the previous plan's tail (receding horizon: what
   the experiment runner does);
 
-and, on the truth, ``oracle_seq`` (:class:`~microctl.experiments.oracle.OracleSequenceController`,
+and, on the truth, ``oracle_seq`` (:class:`~microctl.control.oracle.OracleSequenceController`,
 the cumulative true variance minimised over the true redundant sets: the best any model can do).
 Each executed move is scored with the simulator's true variance from the state it was executed
 from; a path's cumulative true variance is their sum (µm²).
@@ -69,13 +69,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_rigs import TARGETS_UM, make_rig, train_on_rig  # noqa: E402
-from microctl.afm import AnalyticForwardModel  # noqa: E402
+
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
-from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
-from microctl.eafm import EAFM  # noqa: E402
-from microctl.experiments.oracle import OracleSequenceController  # noqa: E402
-from microctl.sequence import SequenceController  # noqa: E402
-from microctl.training import ResidualModelSettings  # noqa: E402
+from microctl.control.controller import (  # noqa: E402
+    AFMController,
+    ControllerSettings,
+    OptimalController,
+)
+from microctl.control.oracle import OracleSequenceController  # noqa: E402
+from microctl.control.sequence import SequenceController  # noqa: E402
+from microctl.models.afm import AnalyticForwardModel  # noqa: E402
+from microctl.models.eafm import EAFM  # noqa: E402
+from microctl.models.training import ResidualModelSettings  # noqa: E402
 
 ABOVE_BAR, BELOW_BAR, TIME_BAR_MS = 1.02, 0.80, 100.0
 CUMULATIVE_GAP = 1.10

@@ -38,16 +38,24 @@ from scipy.optimize import Bounds, LinearConstraint, NonlinearConstraint, minimi
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from microctl.afm import AnalyticForwardModel  # noqa: E402
-from microctl.config import load_stage_config  # noqa: E402
-from microctl.controller import AFMController, ControllerSettings, OptimalController  # noqa: E402
-from microctl.eafm import EAFM, bind_to_stage  # noqa: E402
+from microctl.backends.collect import execute_moves  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
-from microctl.collect import execute_moves  # noqa: E402
-from microctl.design import training_moves  # noqa: E402
+from microctl.control.controller import (  # noqa: E402
+    AFMController,
+    ControllerSettings,
+    OptimalController,
+)
+from microctl.gp.vhgpr import VHGPR  # noqa: E402
+from microctl.measurement.design import training_moves  # noqa: E402
+from microctl.models.afm import AnalyticForwardModel  # noqa: E402
+from microctl.models.eafm import EAFM, bind_to_stage  # noqa: E402
+from microctl.models.training import (  # noqa: E402
+    ResidualData,
+    ResidualModelSettings,
+    train_residual_model,
+)
+from microctl.stage.config import load_stage_config  # noqa: E402
 from microctl.testing import fixed_hyperparameter_model  # noqa: E402
-from microctl.training import ResidualData, ResidualModelSettings, train_residual_model  # noqa: E402
-from microctl.vhgpr import VHGPR  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 WELLS = [((0.5, -0.3), 2.0), ((-0.4, 0.2), 1.6), ((0.1, 0.6), 1.2)]  # ((rx, ry) mrad, depth in log var)

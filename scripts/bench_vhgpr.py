@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from microctl.vhgpr import VHGPR
+from microctl.gp.vhgpr import VHGPR
 
 #: the motorcycle benchmark data, shipped with the tests (tests/data/README.md)
 MCYCLE = Path(__file__).resolve().parents[1] / "tests" / "data" / "mcycle.csv"

@@ -51,11 +51,11 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import independent_stage as ind  # noqa: E402  (the test-only independent stage generator)
 
-from microctl.causes import REGISTRY  # noqa: E402
 from microctl.cli import main as cli_main  # noqa: E402
-from microctl.config import load_stage_config  # noqa: E402
 from microctl.diagnosis.data import data_from_arrays, read_for_diagnosis  # noqa: E402
 from microctl.diagnosis.pipeline import run_diagnosis  # noqa: E402
+from microctl.stage.causes import REGISTRY  # noqa: E402
+from microctl.stage.config import load_stage_config  # noqa: E402
 from microctl.testing.plant import parameter_bar  # noqa: E402
 
 SHORT = {"actuator_gain": "gain", "contact_offset": "c_off", "tool_offset": "t_off", "sensor_scale": "scale",

@@ -252,7 +252,7 @@ def section_paper_scale(args, docs: Path, runs: Path) -> Path:
           + "; ".join(f"`{c}`" for c in cmds) + ".", ""]
     L += rig_lines(res)
     L += ["What this rig is for: the AFM's MSSE and VSSE of the paper's size, growing with the target "
-          "(tests/test_paper_scale.py checks that on 200 seeded trials of the AFM's commands). The bars below "
+          "(tests/experiments/test_paper_scale.py checks that on 200 seeded trials of the AFM's commands). The bars below "
           "are the main job's, sized for configs/stage/sim_paper.yaml: here they are reported, not aimed at. "
           "There is no oracle on this rig (configs/experiments/paper_scale.yaml says why).", ""]
     L += ["## Across seed offsets", "", "Offset 0 is the shipped seed set (the sections below).", ""]

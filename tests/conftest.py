@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
+
+# The tests mirror the packages (tests/stage/, tests/gp/, ...); the shared helpers beside this file
+# (independent_stage.py, serial_rig.py, CONFIGS here) are importable from every folder.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -18,7 +23,7 @@ def table1_path() -> Path:
 
 @pytest.fixture
 def table1(table1_path):
-    from microctl.config import load_stage_config
+    from microctl.stage.config import load_stage_config
 
     return load_stage_config(table1_path)
 
@@ -29,8 +34,8 @@ def planted_log(tmp_path_factory) -> Path:
     residual (0.3 sin(z/8) + 0.2 rx) and 0.05 µm noise, seed 0 (for train/solve and model-file tests)."""
     import numpy as np
 
-    from microctl.afm import AnalyticForwardModel
-    from microctl.config import load_stage_config
+    from microctl.models.afm import AnalyticForwardModel
+    from microctl.stage.config import load_stage_config
 
     afm = AnalyticForwardModel(load_stage_config(CONFIGS / "stage" / "table1.yaml").stage)
     rng = np.random.default_rng(0)

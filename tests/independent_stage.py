@@ -9,7 +9,7 @@ its own sensor and noise code, and physical parameters the diagnosis is **not** 
 ``microctl``'s physics (``physics``, ``afm``, ``extended``, the simulated backend); it reads only
 the geometry numbers (contact points, tool point, actuator ranges) from a stage YAML file, and
 takes the vocabulary (cause names, parameters, planted magnitudes) from the cause registry
-:mod:`microctl.causes`, translating each cause into its own parametrisation (:data:`SETTERS`).
+:mod:`microctl.stage.causes`, translating each cause into its own parametrisation (:data:`SETTERS`).
 
 Parametrisation
 ---------------
@@ -435,7 +435,9 @@ def plant(truth: Truth, cause, rng: np.random.Generator | None = None) -> tuple[
         ``{"cause", "actuator" (1-based or None), "params": {...}}`` in the report's names.
     """
     if isinstance(cause, str):
-        from microctl.causes import REGISTRY  # the vocabulary only: names, parameters, magnitudes
+        from microctl.stage.causes import (
+            REGISTRY,  # the vocabulary only: names, parameters, magnitudes
+        )
 
         cls = REGISTRY[cause]
         act = int(rng.integers(1, truth.geometry.n_act + 1))

@@ -1,13 +1,20 @@
 """The serial rig the serial-backend tests run against: sim_paper.yaml's stage with two GCS
 controllers (q1-q3 on driver1, q4 on driver2) and a gauge, at placeholder URLs that
-:meth:`microctl.emulator.Emulator.pointed_at` replaces with the started emulator's."""
+:meth:`microctl.backends.emulator.Emulator.pointed_at` replaces with the started emulator's."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
 
-from microctl.config import AxisMap, Gauge, SerialBackend, SerialController, StageConfig, load_stage_config
+from microctl.stage.config import (
+    AxisMap,
+    Gauge,
+    SerialBackend,
+    SerialController,
+    StageConfig,
+    load_stage_config,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 0.3  # short read timeouts: every reply is local

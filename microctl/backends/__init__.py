@@ -6,8 +6,8 @@ Use :func:`make_backend` to get the backend a stage config names (``backend.kind
 from __future__ import annotations
 
 from microctl.backends.base import Measurement, StageBackend
-from microctl.config import StageConfig
 from microctl.errors import ConfigError
+from microctl.stage.config import StageConfig
 
 
 def make_backend(config: StageConfig, **kwargs) -> StageBackend:

@@ -14,11 +14,12 @@ import abc
 
 import numpy as np
 
-from microctl.afm import inverse_kinematics_matrix, tool_vector
-from microctl.config import StageConfig
 from microctl.errors import BackendError
+
 # Measurement lives beside the log that records it; re-exported here for compatibility.
-from microctl.measurement_log import Measurement  # noqa: F401
+from microctl.measurement.log import Measurement  # noqa: F401
+from microctl.stage.config import StageConfig
+from microctl.stage.kinematics import inverse_kinematics_matrix, tool_vector
 
 #: Commands this close outside a range (round-off of K u at a bound) are snapped onto the
 #: bound; anything further out is refused. Nothing outside a range is ever sent.

@@ -33,10 +33,10 @@ import time
 import numpy as np
 
 from microctl.backends.base import StageBackend
-from microctl.measurement_log import Measurement
-from microctl.config import StageConfig
 from microctl.errors import BackendError, ConfigError
-from microctl.tabular import NUMBER_PATTERN
+from microctl.measurement.log import Measurement
+from microctl.stage.config import StageConfig
+from microctl.util.tabular import NUMBER_PATTERN
 
 #: Meanings of the GCS error codes this dialect uses.
 GCS_ERRORS = {

@@ -1,4 +1,4 @@
-"""The simulated stage: the stage model (:class:`~microctl.extended.ExtendedForwardModel`) with noise.
+"""The simulated stage: the stage model (:class:`~microctl.models.extended.ExtendedForwardModel`) with noise.
 
 One model object is the truth of the moves *and* of the oracle (``true_mean``, ``true_var``),
 and the model the diagnosis fits (with candidate causes instead of the planted ones). One
@@ -23,11 +23,11 @@ from __future__ import annotations
 import numpy as np
 
 from microctl.backends.base import StageBackend
-from microctl.measurement_log import Measurement
-from microctl.config import StageConfig
 from microctl.errors import BackendError
-from microctl.extended import ExtendedForwardModel, ExtendedPrediction
-from microctl.physics import ZERO_STATE_DIRECTION
+from microctl.measurement.log import Measurement
+from microctl.models.extended import ExtendedForwardModel, ExtendedPrediction
+from microctl.stage.config import StageConfig
+from microctl.stage.physics import ZERO_STATE_DIRECTION
 
 
 class SimulatedStage(StageBackend):

@@ -1,16 +1,16 @@
 """Mean causes of the registry fitted as physical changes of the stage model, by NLS.
 
-Every mean cause of :data:`microctl.causes.REGISTRY` (kinds ``static`` and ``dynamic``) is a
+Every mean cause of :data:`microctl.stage.causes.REGISTRY` (kinds ``static`` and ``dynamic``) is a
 candidate, per actuator for per-actuator causes: a :class:`CauseSpec` wraps the registry class
 with the actuator, its search bounds for the stage and its starting grid. A set of causes with
 parameters θ gives a prediction t̂(θ) by the stage model
-(:class:`~microctl.extended.ExtendedForwardModel`, the simulator's own model object): a cause is
+(:class:`~microctl.models.extended.ExtendedForwardModel`, the simulator's own model object): a cause is
 never a curve fitted to the AFM residual. θ is fitted by nonlinear least squares
 (``scipy.optimize.least_squares``, trust-region reflective, bounds), optionally weighted by
 1/std of a fitted noise model.
 
 Nuisances: a cause may declare stage-physics numbers its prediction depends on that the config
-may have wrong (:attr:`microctl.causes.Cause.nuisance`; ``contact_loss``: the preload compression,
+may have wrong (:attr:`microctl.stage.causes.Cause.nuisance`; ``contact_loss``: the preload compression,
 because where a lowered ball unloads depends on the gap relative to it). They are fitted with the
 cause, shared by every cause that declares them, counted as parameters, and reported apart.
 
@@ -28,11 +28,18 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from microctl.causes import MEAN_KINDS, REGISTRY, Cause, Nuisance, nuisances
-from microctl.config import Effects, Stage
 from microctl.diagnosis.data import DiagnosisData
 from microctl.errors import SolveError
-from microctl.extended import ExtendedForwardModel
+from microctl.models.extended import ExtendedForwardModel
+from microctl.stage.causes import (
+    MEAN_KINDS,
+    REGISTRY,
+    Cause,
+    Effects,
+    Nuisance,
+    nuisances,
+)
+from microctl.stage.geometry import Stage
 
 #: Relative tolerances of the least-squares fits (parameters to ~1e-8 of their scale: far below
 #: any standard error).
@@ -128,7 +135,7 @@ def candidate_specs(stage: Stage, has: Sequence[str] = ("time_s",)) -> list[Caus
     -------
     list of CauseSpec
         In vocabulary order, with each cause's search bounds for ``stage``
-        (:meth:`microctl.causes.Cause.fit_bounds`).
+        (:meth:`microctl.stage.causes.Cause.fit_bounds`).
     """
     out: list[CauseSpec] = []
     for c in REGISTRY.values():
@@ -195,7 +202,7 @@ class MeanFit:
         Unweighted Jacobian of the prediction at the optimum (parameters then nuisances).
     unphysical : bool
         The fitted causes lift a ball off somewhere though none of them may
-        (:attr:`microctl.causes.Cause.lifts_balls`): not the causes they claim to be.
+        (:attr:`microctl.stage.causes.Cause.lifts_balls`): not the causes they claim to be.
     """
 
     specs: tuple[CauseSpec, ...]

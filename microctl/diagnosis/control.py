@@ -2,7 +2,7 @@
 
 The plain EAFM (the residual GP of eq. 3 on the configured AFM) and the extended EAFM (the same
 on the AFM with the accepted corrections, its noise model using the diagnosed stick-slip
-actuators: :func:`microctl.training.noise_features_for`) are trained on the diagnosed log
+actuators: :func:`microctl.models.training.noise_features_for`) are trained on the diagnosed log
 with the package's default residual model, and the default optimal controller (eq. 4) of each
 reaches the same targets in sequence from the zero state. For each chosen pose: the actuator
 commands and the predicted scatter; on a simulated stage also the true scatter and true error
@@ -16,12 +16,16 @@ import math
 
 import numpy as np
 
-from microctl.afm import AnalyticForwardModel
-from microctl.config import StageConfig
-from microctl.controller import ControllerSettings, OptimalController
+from microctl.control.controller import ControllerSettings, OptimalController
 from microctl.diagnosis.data import DiagnosisData
-from microctl.eafm import EAFM
-from microctl.training import ResidualModelSettings, residual_dataset, train_residual_model
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.eafm import EAFM
+from microctl.models.training import (
+    ResidualModelSettings,
+    residual_dataset,
+    train_residual_model,
+)
+from microctl.stage.config import StageConfig
 
 __all__ = ["TARGET_FRACTIONS", "control_comparison"]
 
@@ -50,7 +54,7 @@ def control_comparison(config: StageConfig, extended: StageConfig, data: Diagnos
         ``true_error_um``, ``oracle_std_um``; ``truth`` says whether the truth was available.
     """
     from microctl.backends.simulated import SimulatedStage
-    from microctl.experiments.oracle import OracleController
+    from microctl.control.oracle import OracleController
 
     truth = config.backend.kind == "simulated"
     settings = ControllerSettings()

@@ -4,7 +4,7 @@ Everything the causes need per executed move k: the pose command u_k, the actuat
 commands q_k (eq. 12, as sent), the state before the move s_k = [t_prev; q_prev], the
 settling time, and the direction each actuator last moved (backlash state: the sign of
 Δq_i, a zero step keeping the previous row's sign, the first rows starting "up" as the
-zero state of :mod:`microctl.physics`).
+zero state of :mod:`microctl.stage.physics`).
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from microctl.config import Stage
 from microctl.errors import DataError
-from microctl.measurement_log import MeasurementLog
-from microctl.physics import directions_from_steps
+from microctl.measurement.log import MeasurementLog
+from microctl.stage.geometry import Stage
+from microctl.stage.physics import directions_from_steps
 
 #: Fewest moves a diagnosis accepts (the largest joint fit has ~8 parameters, the
 #: structure test ~25 regressors; below this nothing is significant anyway).
@@ -191,7 +191,7 @@ def data_from_log(log: MeasurementLog, stage: Stage) -> DiagnosisData:
 
 def read_for_diagnosis(path, stage: Stage) -> tuple[DiagnosisData, np.ndarray, tuple]:
     """Read a measurement log for a diagnosis: rows no stage can have produced (a corrupt cell,
-    :func:`microctl.measurement_log.implausible_rows`) are kept and marked, to be set aside as
+    :func:`microctl.measurement.log.implausible_rows`) are kept and marked, to be set aside as
     outliers and named by row (``run_diagnosis(set_aside=...)``), not refused.
 
     Returns
@@ -200,7 +200,7 @@ def read_for_diagnosis(path, stage: Stage) -> tuple[DiagnosisData, np.ndarray, t
     set_aside : ndarray of bool, shape (n,)
     implausible : tuple of ImplausibleRow
     """
-    from microctl.measurement_log import read_log
+    from microctl.measurement.log import read_log
 
     log = read_log(path, stage, plausibility="report")
     set_aside = np.zeros(len(log), dtype=bool)

@@ -41,7 +41,15 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from microctl.diagnosis.causes import MeanFit, fit_mean
 from microctl.diagnosis.data import DiagnosisData
-from microctl.diagnosis.residuals import GPFit, Test, fit_gp, generic_basis, gp_inputs, gp_lr_test, structure_f_test
+from microctl.diagnosis.residuals import (
+    GPFit,
+    Test,
+    fit_gp,
+    generic_basis,
+    gp_inputs,
+    gp_lr_test,
+    structure_f_test,
+)
 
 
 @dataclass(frozen=True, eq=False)

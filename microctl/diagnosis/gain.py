@@ -5,14 +5,14 @@ Models compared on readings they were not fitted to:
 - ``afm``: the analytic forward model of the configured stage (eq. 14, no fit);
 - ``afm_gp``: AFM + VHGPR on its residual with x = [s; u] (the paper's EAFM, eq. 1-3);
 - ``extended``: the stage model with the accepted causes through the contact physics
-  (:class:`~microctl.extended.ExtendedForwardModel`), cause parameters refitted on the
+  (:class:`~microctl.models.extended.ExtendedForwardModel`), cause parameters refitted on the
   training part;
 - ``extended_gp``: extended + VHGPR on *its* residual (the extended EAFM).
 
 Held-out: 5-fold cross-validation over the moves (seeded permutation), or a separate
 ``--holdout`` log (fitted on the whole diagnosis log). Every move is predicted once;
 RMSE per model; paired t-tests on the squared errors, one-sided (the second model has
-the smaller mean squared error, :func:`microctl.stats.paired_t`); the negative log
+the smaller mean squared error, :func:`microctl.util.stats.paired_t`); the negative log
 predictive density (Gaussian with the predictive mean and variance) of the probabilistic
 variants (``extended`` with its physical noise model: the accepted noise causes refitted
 on the training part).
@@ -25,13 +25,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from microctl.afm import AnalyticForwardModel
-from microctl.config import Stage
 from microctl.diagnosis.causes import CauseSpec, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.noise import fit_noise
-from microctl.stats import paired_t
-from microctl.vhgpr import VHGPR
+from microctl.gp.vhgpr import VHGPR
+from microctl.models.afm import AnalyticForwardModel
+from microctl.stage.geometry import Stage
+from microctl.util.stats import paired_t
 
 MODELS = ("afm", "afm_gp", "extended", "extended_gp")
 

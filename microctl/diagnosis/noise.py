@@ -6,7 +6,7 @@ Variance model of reading k (shared/spec/diagnosis.md, noise vocabulary)::
 
 σ₀ is the ``homoscedastic`` base noise (gauge + driver accuracy), F the actuators with
 ``actuator_friction`` (stick-slip std s_i per µm moved), J_ki = ∂reading/∂q_act,i the
-contact sensitivity of the fitted mean model at move k (:func:`microctl.physics.tool_sensitivity`,
+contact sensitivity of the fitted mean model at move k (:func:`microctl.stage.physics.tool_sensitivity`,
 the same propagation the simulator's ``true_var`` uses). The log-likelihood
 ℓ = −½ Σ (log 2π v_k + r_k²/v_k) is maximised over (log σ₀², s_i²) with L-BFGS-B and
 analytic gradients; standard errors come from the expected Fisher information

@@ -16,19 +16,36 @@ from typing import Callable
 
 import numpy as np
 
-from microctl.afm import AnalyticForwardModel
-from microctl.blas import single_thread_blas
-from microctl.config import StageConfig
 from microctl.diagnosis.causes import fit_mean
+from microctl.diagnosis.control import control_comparison
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
 from microctl.diagnosis.noise import NoiseSelection, select_noise
-from microctl.causes import ActuatorFriction
-from microctl.diagnosis.control import control_comparison
-from microctl.diagnosis.outliers import RowTest, extreme_rows, row_test, screen, suspect_cells
-from microctl.diagnosis.residuals import Test, breusch_pagan, gp_inputs, gp_lr_test, where_analysis
-from microctl.diagnosis.selection import Selection, backward, select_mean_causes, withdraw
+from microctl.diagnosis.outliers import (
+    RowTest,
+    extreme_rows,
+    row_test,
+    screen,
+    suspect_cells,
+)
+from microctl.diagnosis.residuals import (
+    Test,
+    breusch_pagan,
+    gp_inputs,
+    gp_lr_test,
+    where_analysis,
+)
+from microctl.diagnosis.selection import (
+    Selection,
+    backward,
+    select_mean_causes,
+    withdraw,
+)
+from microctl.models.afm import AnalyticForwardModel
+from microctl.stage.causes import ActuatorFriction
+from microctl.stage.config import StageConfig
+from microctl.util.blas import single_thread_blas
 
 #: Overall significance level of a diagnosis (per run).
 ALPHA = 1e-3
@@ -197,7 +214,7 @@ def run_diagnosis(
         Called after each unit of work.
     set_aside : ndarray of bool, shape (n,), optional
         Rows known to be corrupt before any fit (a log's implausible rows,
-        :func:`microctl.measurement_log.implausible_rows`): always outliers, never fitted.
+        :func:`microctl.measurement.log.implausible_rows`): always outliers, never fitted.
 
     Returns
     -------
@@ -272,7 +289,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     # the accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
     # compression of a contact loss): the extended model needs both to reproduce the fit
     # and the accepted noise causes (stick-slip per actuator): the residual model's noise features
-    # (microctl.training.noise_features_for), so the extended EAFM's controller uses them
+    # (microctl.models.training.noise_features_for), so the extended EAFM's controller uses them
     friction = tuple(ActuatorFriction(actuator=int(a), std_per_um=float(sd))
                      for a, sd in zip(noise.fit.friction, noise.fit.std_per_um))
     ext_effects = sel.final.effects.with_(*friction) if friction else sel.final.effects

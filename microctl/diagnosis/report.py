@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from microctl.diagnosis.selection import cause_label
-from microctl.io import to_jsonable, write_json
+from microctl.util.io import to_jsonable, write_json
 
 #: Extra measurement that tells apart causes a single scalar gauge cannot (docs/diagnosis.md).
 SEPARATING_MEASUREMENT = {

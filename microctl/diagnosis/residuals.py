@@ -33,7 +33,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize
 
 from microctl.diagnosis.data import DiagnosisData
-from microctl.kernels import Kernel
+from microctl.gp.kernels import Kernel
 
 
 @dataclass(frozen=True)
@@ -213,7 +213,7 @@ def _gp_nll(theta: np.ndarray, X: np.ndarray, y: np.ndarray) -> tuple[float, np.
     """Negative log marginal likelihood of an SE-ARD GP + white noise and its gradient.
 
     θ = [log ℓ_1..d, log σ_f², log σ_n²]; K = k(X, X) + σ_n² I with the package's one SE kernel
-    (:class:`microctl.kernels.Kernel`); ∂(−log p)/∂θ = −½ tr((ααᵀ − K⁻¹) ∂K/∂θ), α = K⁻¹ y
+    (:class:`microctl.gp.kernels.Kernel`); ∂(−log p)/∂θ = −½ tr((ααᵀ − K⁻¹) ∂K/∂θ), α = K⁻¹ y
     (Rasmussen & Williams eq. 5.9).
     """
     d = X.shape[1]

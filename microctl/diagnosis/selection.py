@@ -27,10 +27,11 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import stats
 
-from microctl.config import Effects, Stage
 from microctl.diagnosis.causes import CauseSpec, MeanFit, candidate_specs, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.residuals import Test, structure_f_test
+from microctl.stage.causes import Effects
+from microctl.stage.geometry import Stage
 
 #: 2 Δ log-likelihood below which two fitted causes are called equivalent.
 EQUIV_LR = 6.0

@@ -5,7 +5,7 @@ Modules:
 - :mod:`~microctl.experiments.config` — the experiment YAML → frozen dataclasses, validated
   (with the stage config it names) before any move is made;
 - :mod:`~microctl.experiments.design` — training move designs (IV-A);
-- :mod:`~microctl.experiments.oracle` — the controller that optimises against the simulator's
+- :mod:`~microctl.control.oracle` — the controller that optimises against the simulator's
   true mean and variance (the limit any learned model can reach);
 - :mod:`~microctl.experiments.runner` — executes the phases, logging every move row by row;
 - :mod:`~microctl.experiments.report` — statistics (Table II, the t-tests), results.json, report.md;

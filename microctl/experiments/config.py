@@ -16,16 +16,22 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Mapping
 
-from microctl.config import StageConfig, load_stage_config, load_yaml
-from microctl.controller import ControllerSettings
-from microctl.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
+from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
-from microctl.fields import FieldReader, read_settings, same_setting, setting, validate_settings
-from microctl.training import ResidualModelSettings
+from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
+from microctl.models.training import ResidualModelSettings
+from microctl.stage.config import StageConfig, load_stage_config, load_yaml
+from microctl.util.fields import (
+    FieldReader,
+    read_settings,
+    same_setting,
+    setting,
+    validate_settings,
+)
 
 #: Controllers an experiment can compare: the paper's AFM and EAFM (eq. 4), the oracle (eq. 4 on
 #: the simulator's truth), and sequence control over the whole target list with the EAFM
-#: (:mod:`microctl.sequence`) and on the truth (:class:`~microctl.experiments.oracle.OracleSequenceController`).
+#: (:mod:`microctl.control.sequence`) and on the truth (:class:`~microctl.control.oracle.OracleSequenceController`).
 CONTROLLERS = ("afm", "eafm", "oracle", "eafm_sequence", "oracle_sequence")
 
 #: Controllers of an experiment file that does not list them.
@@ -79,11 +85,11 @@ class Training:
     moves : int
         Moves of the initial design (the paper: 125).
     design : str
-        One of :data:`~microctl.design.DESIGNS` (default ``covering``).
+        One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
     noise_model, linear_trend, restarts, max_iter
-        The residual model (:class:`~microctl.training.ResidualModelSettings`; same defaults).
+        The residual model (:class:`~microctl.models.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
         Refinement rounds after the first fit (0: none): each runs incremental episodes,
         logs them as training moves and refits.
@@ -126,7 +132,7 @@ class Training:
 
 @dataclass(frozen=True)
 class Oracle:
-    """Settings of the oracle controller (:mod:`microctl.experiments.oracle`).
+    """Settings of the oracle controller (:mod:`microctl.control.oracle`).
 
     Attributes
     ----------
@@ -195,7 +201,7 @@ class ExperimentConfig:
     stage_config : StageConfig
         The loaded (validated) stage config.
     emulate : bool
-        Serve the stage in-process (:class:`~microctl.emulator.Emulator`) and drive it through
+        Serve the stage in-process (:class:`~microctl.backends.emulator.Emulator`) and drive it through
         the serial backend (needs ``backend.serial`` in the stage config).
     controllers : tuple of str
         Controllers compared, a subset of :data:`CONTROLLERS` (``afm`` and ``eafm`` required;
@@ -337,7 +343,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
 
     @cache
     def reachable() -> tuple[float, float]:  # the AFM's reachable t range (two LPs), computed once
-        from microctl.afm import AnalyticForwardModel
+        from microctl.models.afm import AnalyticForwardModel
 
         return AnalyticForwardModel(stage_config.stage).t_range()
 

@@ -4,7 +4,7 @@ Incremental movement (IV-D): e_s = t_d − t_f per trial and target; MSSE (mean)
 (sample variance, ddof 1) per target and controller (Table II); the paper's Student
 two-sample t-tests on the per-target |MSSE| and VSSE values of AFM vs EAFM; per target the
 Brown–Forsythe test of equal SSE variances (robust to the heavy-tailed stick-slip scatter,
-unlike the F-test; :mod:`microctl.stats`) and Welch's t-test on |e_s|.
+unlike the F-test; :mod:`microctl.util.stats`) and Welch's t-test on |e_s|.
 
 Absolute movement (IV-C): PE = |t' − prediction| per move for AFM and EAFM (eq. of IV-B.1),
 averaged over the trials per point; the paper's two-sample t-test plus the paired t-test and
@@ -23,10 +23,10 @@ import numpy as np
 import yaml
 from scipy.special import ndtr
 
-from microctl import stats
-from microctl.io import to_jsonable, write_json
+from microctl.util import stats
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
+from microctl.util.io import to_jsonable, write_json
 
 #: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
 PAPER_TABLE_II = {

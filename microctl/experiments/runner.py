@@ -26,21 +26,24 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from microctl.afm import AnalyticForwardModel
 from microctl.backends import make_backend
 from microctl.backends.base import StageBackend
-from microctl.design import space_filling_moves
-from microctl.config import StageConfig
-from microctl.controller import AFMController, ControlResult, OptimalController
-from microctl.eafm import EAFM
+from microctl.control.controller import AFMController, ControlResult, OptimalController
+from microctl.control.oracle import OracleController, OracleSequenceController
+from microctl.control.sequence import SequenceController
 from microctl.errors import BackendError, SolveError
 from microctl.experiments.config import ExperimentConfig
-from microctl.design import training_moves
-from microctl.experiments.oracle import OracleController, OracleSequenceController
-from microctl.sequence import SequenceController
-from microctl.measurement_log import Measurement, MeasurementLogWriter, read_log
-from microctl.progress import Progress
-from microctl.training import noise_summary, residual_dataset, train_residual_model
+from microctl.measurement.design import space_filling_moves, training_moves
+from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.eafm import EAFM
+from microctl.models.training import (
+    noise_summary,
+    residual_dataset,
+    train_residual_model,
+)
+from microctl.stage.config import StageConfig
+from microctl.util.progress import Progress
 
 __all__ = ["MoveRecorder", "ExperimentInterrupted", "run_experiment", "BackendFactory"]
 
@@ -417,7 +420,7 @@ def _sequence_step(ctrl, rest: list[float], s: np.ndarray, plan: Any, run: _Run,
 
 def _emulated_config(cfg: ExperimentConfig):
     """Start the in-process emulator and point the serial devices at it."""
-    from microctl.emulator import Emulator
+    from microctl.backends.emulator import Emulator
 
     sc = cfg.stage_config
     emu = Emulator(sc, seed=cfg.seeds.training_stage)

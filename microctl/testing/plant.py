@@ -2,7 +2,7 @@
 
 A run is the simulated stage (:class:`~microctl.backends.simulated.SimulatedStage`) with its
 effects replaced by the planted ones, driven through space-filling moves
-(:func:`microctl.collect.space_filling_moves`), exactly as ``microctl collect`` would.
+(:func:`microctl.backends.collect.space_filling_moves`), exactly as ``microctl collect`` would.
 :func:`random_cause` draws one vocabulary cause with a realistic magnitude.
 """
 
@@ -13,13 +13,13 @@ from typing import Callable
 
 import numpy as np
 
-from microctl.afm import AnalyticForwardModel
+from microctl.backends.collect import space_filling_moves
 from microctl.backends.simulated import SimulatedStage
-from microctl.collect import space_filling_moves
-from microctl.causes import REGISTRY, preload_compression_um
-from microctl.config import Effects, StageConfig
 from microctl.diagnosis.data import DiagnosisData, data_from_arrays
-from microctl.measurement_log import MeasurementLogWriter
+from microctl.measurement.log import MeasurementLogWriter
+from microctl.models.afm import AnalyticForwardModel
+from microctl.stage.causes import REGISTRY, Effects, preload_compression_um
+from microctl.stage.config import StageConfig
 
 #: Planted causes of :func:`random_cause`: the registry, in vocabulary order.
 PLANTABLE = tuple(REGISTRY)
@@ -122,7 +122,7 @@ def compression_um(config: StageConfig) -> float:
 
 def random_cause(name: str, rng: np.random.Generator, n_act: int = 4, *,
                  compression_um: float = 5.0) -> tuple[Effects, dict]:
-    """One planted cause of realistic magnitude (:meth:`microctl.causes.Cause.draw`).
+    """One planted cause of realistic magnitude (:meth:`microctl.stage.causes.Cause.draw`).
 
     Parameters
     ----------

@@ -1,0 +1,82 @@
+"""Execute training moves on a backend and write them as a measurement log.
+
+The moves come from a training design (:mod:`microctl.measurement.design`: ``covering`` by default,
+``space_filling`` for the paper's IV-A design); :func:`run_collect` executes them one by
+one, logging each completed move at once, so that a failure keeps every completed move.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from microctl.backends.base import StageBackend
+from microctl.errors import BackendError
+from microctl.measurement.design import space_filling_moves, training_moves  # noqa: F401  (re-exported)
+from microctl.measurement.log import MeasurementLogWriter
+from microctl.util.progress import Progress
+
+__all__ = ["run_collect", "execute_moves", "training_moves", "space_filling_moves"]
+
+
+def execute_moves(backend: StageBackend, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Execute moves on a backend and keep the log's arrays in memory (no file; for benchmarks).
+
+    Returns
+    -------
+    s_prev : ndarray, shape (n, n_s)
+        State before each move.
+    u : ndarray, shape (n, n_p)
+    t : ndarray, shape (n,)
+        Gauge reading after each move (µm).
+    """
+    s_prev, t = [], []
+    for u in np.atleast_2d(moves):
+        s_prev.append(backend.state)
+        t.append(backend.move(u).t_um)
+    return np.array(s_prev), np.atleast_2d(moves).astype(float), np.array(t)
+
+
+def run_collect(
+    backend: StageBackend,
+    moves: np.ndarray,
+    out: str | Path,
+    *,
+    quiet: bool = False,
+) -> int:
+    """Execute moves on a backend, writing the measurement log row by row.
+
+    Parameters
+    ----------
+    backend : StageBackend
+    moves : ndarray, shape (n, n_p)
+    out : path
+        The log file (overwritten).
+    quiet : bool
+        Hide progress on stderr.
+
+    Returns
+    -------
+    int
+        Number of completed moves (all of them).
+
+    Raises
+    ------
+    BackendError
+        From a failed move; the log keeps every move completed before it, and the message
+        says how many.
+    """
+    moves = np.atleast_2d(moves)
+    with MeasurementLogWriter(out, backend.stage) as log, Progress(len(moves), "collect", quiet=quiet) as prog:
+        for k, u in enumerate(moves):
+            s_prev = backend.state
+            try:
+                m = backend.move(u)
+            except BackendError as exc:
+                raise BackendError(
+                    f"move {k + 1} of {len(moves)} failed: {exc}; {out} keeps the {k} completed moves"
+                ) from None
+            log.write(m, s_prev, seq=k)
+            prog.step(info=f"t = {m.t_um:.3f} µm")
+    return len(moves)

@@ -1,0 +1,96 @@
+"""``microctl train``: fit the heteroscedastic GP to the AFM residual of a measurement log (eq. 3)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
+from microctl.errors import ConfigError
+from microctl.measurement.log import read_log
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.training import (
+    NOISE_MODELS,
+    ResidualModelSettings,
+    noise_summary,
+    residual_dataset,
+    train_residual_model,
+)
+from microctl.stage.config import load_stage_config
+from microctl.util.fields import SettingError
+
+#: Fewest log rows a residual fit accepts.
+MIN_ROWS = 5
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``train`` sub-command."""
+    p = subparsers.add_parser(
+        "train",
+        help="fit the heteroscedastic GP to the AFM residual of a measurement log",
+        description="Fit the VHGPR to y = t' - AFM t(u) with x = [s_prev; u] (paper eq. 3) from a "
+        "measurement log; the model file records the stage geometry and is refused for another.",
+    )
+    p.add_argument("log", metavar="LOG.csv", help="measurement log")
+    p.add_argument("--config", required=True, metavar="STAGE.yaml", help="stage config")
+    p.add_argument("-o", "--out", required=True, metavar="MODEL.npz", help="model file to write")
+    d = ResidualModelSettings()
+    p.add_argument("--noise-model", choices=NOISE_MODELS, default=d.noise_model,
+                   help=f"noise model of the GP (default {d.noise_model}: a noise floor plus per-actuator "
+                   "stick-slip as g's prior mean; hgp: the paper's constant prior mean)")
+    p.add_argument("--no-linear-trend", dest="linear_trend", action="store_false",
+                   help="no affine trend in u in the mean correction (the paper's SE kernel alone)")
+    p.add_argument("--se", choices=("auto", "on", "off"), default=d.se,
+                   help=f"the mean correction's SE part (default {d.se}: kept only where the data pay for it)")
+    p.add_argument("--restarts", type=int, default=d.restarts, metavar="N",
+                   help=f"optimisation runs (default {d.restarts})")
+    add_seed(p, f"seed of the restarts (default {d.seed})")
+    add_quiet(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.se == "off" and not args.linear_trend:
+        raise ConfigError("--se off needs the linear trend (without the trend and the SE part the mean correction "
+                          "would be a constant): drop --no-linear-trend, or use --se auto or on")
+    try:
+        settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
+                                         restarts=args.restarts, seed=args.seed)
+    except SettingError as exc:  # name the option, not the field
+        raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
+    check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
+    config = load_stage_config(args.config)
+    afm = AnalyticForwardModel(config.stage)
+    log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
+    data = residual_dataset(log, afm)
+    note = afm.dynamic_corrections_note()
+    if note:
+        print(f"train: note: {note}", file=sys.stderr)
+    t0 = time.perf_counter()
+    if not args.quiet and sys.stderr.isatty():
+        print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
+    model = train_residual_model(data, afm, settings)
+    model.save(args.out)
+    if not args.quiet:
+        print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
+              f"model for stage '{config.stage.name}' written to {args.out}", file=sys.stderr)
+        print(f"train: {describe_noise(noise_summary(model, afm))}", file=sys.stderr)
+        sel = model.info.get("se_selection")
+        if sel is not None:
+            print(f"train: mean correction: affine trend in u"
+                  + (" plus an SE part" if sel["kept_se"] else "")
+                  + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
+                  f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})",
+                  file=sys.stderr)
+    return 0
+
+
+def describe_noise(summary: dict) -> str:
+    """One line: the physical noise model's floor and per-actuator stick-slip (± standard error)."""
+    if summary["noise_model"] != "physical":
+        return "noise model hgp (the paper's: g ~ GP(mu0, K_g))"
+    acts = ", ".join(f"{name} {a['friction_std_per_um']:.3f} ± {a['friction_std_per_um_se']:.3f}"
+                     for name, a in summary["actuators"].items())
+    return (f"noise model physical: floor std {summary['floor_std_um']:.4f} µm; stick-slip std per µm moved "
+            f"(through the AFM's contact sensitivities): {acts}")

@@ -1,0 +1,3 @@
+"""Controllers on a forward model: objectives, the optimal (IPOPT) controller and its baselines,
+the sequence controller, and the oracle that knows the simulator's truth.
+"""

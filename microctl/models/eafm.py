@@ -1,0 +1,422 @@
+"""The enhanced analytic forward model (EAFM) of the paper, eq. 1 and 3, as CasADi graphs.
+
+The EAFM adds a heteroscedastic GP (VHGPR, :mod:`microctl.gp.vhgpr`) trained on the AFM
+residual ``y = t' - T_t f_a(s, u)`` with input ``x = [s; u]`` (eq. 3) to the AFM
+(:mod:`microctl.models.afm`, eq. 14):
+
+    t' ~ N( T_t f_a(s, u) + g_e(s, u),  r_e(s, u) )                                   (eq. 1)
+
+with ``g_e`` the GP mean of f and ``r_e = exp(g)`` the input-dependent noise variance. This
+module builds, from an :class:`~microctl.models.afm.AnalyticForwardModel` and a
+:class:`~microctl.gp.vhgpr.FittedVHGPR`:
+
+- :attr:`EAFM.function`, one named CasADi Function ``eafm(s, u) -> (t_mean, f_mean, f_var,
+  g_mean, g_var, q)`` (MX graph; exact first and second derivatives by CasADi's AD);
+- :meth:`EAFM.expressions`, the same quantities as separate MX expressions of given
+  symbols, so that an NLP pulls in only what its objective needs (the O(n^2) epistemic
+  terms are never evaluated by an NLP that does not use them);
+- :meth:`EAFM.predict`, the NumPy reference (``FittedVHGPR.predict`` + AFM);
+- vectorised NumPy helpers for the controller's global seeding
+  (:meth:`EAFM.mean_and_grad_u`, :meth:`EAFM.g_mean_np`).
+
+Graph design (measurements in ``docs/controller.md``): MX, not SX; the mean terms are
+``k^T alpha`` with ``k`` built from one dense (n x d) product; the variance terms are
+``k** - ||L^-1 k||^2`` with ``L^-1`` a constant lower-triangular (sparse) DM.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sps
+
+from microctl.errors import ConfigError
+from microctl.gp.kernels import se_matrix
+from microctl.gp.vhgpr import FittedVHGPR
+from microctl.models.afm import AnalyticForwardModel, plausible_t_bound_um
+
+__all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
+
+
+def load_residual_model(path: str | Path) -> FittedVHGPR:
+    """Read a residual model file (``.npz`` written by :meth:`FittedVHGPR.save`)."""
+    return FittedVHGPR.load(path)
+
+
+def _check_output_scale(model: FittedVHGPR, afm: AnalyticForwardModel, source: str) -> None:
+    """Refuse a residual model whose outputs no stage of this config can have produced.
+
+    The residual y = t' − AFM t (µm) of a healthy or defective stage is at most of the size
+    of the readings a log may hold (:func:`~microctl.models.afm.plausible_t_bound_um`);
+    a model whose training residuals had a larger mean or spread (``y_mean``, ``y_scale``)
+    was trained on something else, or edited, and would only make IPOPT fail.
+    """
+    bound = plausible_t_bound_um(afm.stage)
+    for name in ("y_mean", "y_scale"):
+        value = abs(float(getattr(model, name)))
+        if value > bound:
+            raise ConfigError(f"{source}: the residual model's {name} = {value:.4g} µm is beyond what stage "
+                              f"'{afm.stage.name}' can produce (|t| ≤ {bound:.6g} µm in a log); it was not trained "
+                              "on this stage's residuals, retrain it with `microctl train`")
+
+
+def bind_to_stage(model: FittedVHGPR, afm: AnalyticForwardModel) -> FittedVHGPR:
+    """Return ``model`` with ``geometry_hash`` and ``x_names`` of the AFM's stage (eq. 3 input)."""
+    names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
+    return replace(model, geometry_hash=afm.stage.geometry_hash(), x_names=names, y_name="residual_um")
+
+
+@dataclass(frozen=True)
+class EAFMPrediction:
+    """NumPy EAFM prediction at m points (µm, µm²).
+
+    Attributes
+    ----------
+    t_mean : ndarray, shape (m,)
+        AFM tool pose + GP mean (eq. 1).
+    f_mean, f_var : ndarray, shape (m,)
+        GP residual mean and epistemic variance.
+    g_mean, g_var : ndarray, shape (m,)
+        Mean and variance of the log noise variance ``g`` (µm² in the log).
+    t_var : ndarray, shape (m,)
+        Predictive variance ``f_var + exp(g_mean + g_var/2)``.
+    q : ndarray, shape (m, n_q)
+        Actuator commands ``K u`` (eq. 12).
+    """
+
+    t_mean: np.ndarray
+    f_mean: np.ndarray
+    f_var: np.ndarray
+    g_mean: np.ndarray
+    g_var: np.ndarray
+    t_var: np.ndarray
+    q: np.ndarray
+
+
+#: Kernel factors below exp(-_SE_FLUSH) are set to 0 in the pairwise products (< 1e-150 of
+#: the largest, far below round-off); their subnormal values and products slow exp and the
+#: BLAS product several-fold (measured 8 ms instead of 1 ms at 150 x 500 x 160).
+_SE_FLUSH = 345.0
+
+
+def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
+    """L^-1 of a lower Cholesky factor as a sparse (lower-triangular) DM."""
+    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+    return ca.DM(sps.csc_matrix(np.tril(Linv)))
+
+
+class EAFM:
+    """The EAFM of eq. 1 built from an AFM and a fitted residual VHGPR.
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    model : FittedVHGPR or str or Path
+        The residual model (or its ``.npz`` file), trained with ``x = [s; u]`` (eq. 3).
+    check_geometry : bool
+        Refuse a model whose ``geometry_hash`` differs from ``afm.stage.geometry_hash()``
+        (default True). A model with no geometry hash is refused too.
+
+    Raises
+    ------
+    ConfigError
+        Geometry-hash mismatch, wrong input dimension, or (for a model file) output mean or
+        scale beyond what the stage can produce, naming the model file.
+
+    Attributes
+    ----------
+    function : casadi.Function
+        ``eafm(s, u) -> (t_mean, f_mean, f_var, g_mean, g_var, q)``; s shape (n_s, 1),
+        u shape (n_p, 1); every output (1, 1) except q (n_q, 1). Built lazily.
+    """
+
+    def __init__(self, afm: AnalyticForwardModel, model: FittedVHGPR | str | Path, *, check_geometry: bool = True):
+        source = "<in-memory model>"
+        if not isinstance(model, FittedVHGPR):
+            source = str(model)
+            model = load_residual_model(model)
+            _check_output_scale(model, afm, source)
+        self.afm = afm
+        self.model = model
+        self.source = source
+        self.n_p, self.n_q, self.n_s = afm.n_p, afm.n_q, afm.n_s
+        self.n_x = self.n_s + self.n_p
+        if check_geometry:
+            want = afm.stage.geometry_hash()
+            if model.geometry_hash is None:
+                raise ConfigError(f"{source}: the residual model is not bound to a stage geometry "
+                                  f"(no geometry_hash); train it with `microctl train` for this stage")
+            if model.geometry_hash != want:
+                raise ConfigError(f"{source}: the residual model was trained for another stage geometry "
+                                  f"(geometry_hash {model.geometry_hash[:12]}… ≠ {want[:12]}… of stage "
+                                  f"'{afm.stage.name}'); retrain it for this stage")
+        if model.n_inputs != self.n_x:
+            raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
+                              f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
+        self._kf = model.f_kernel
+        self._kg = model.g_kernel
+        self._gm = model.g_prior_mean
+        self._gm_evidence = model.g_prior_mean_with_uncertainty
+        self._x_mean = np.asarray(model.x_mean, dtype=float)
+        self._x_scale = np.asarray(model.x_scale, dtype=float)
+        self._log_y2 = 2.0 * math.log(model.y_scale)
+        self._Lf_inv: ca.DM | None = None
+        self._Lg_inv: ca.DM | None = None
+        self._function: ca.Function | None = None
+
+    @property
+    def function(self) -> ca.Function:
+        """``eafm(s, u) -> (t_mean, f_mean, f_var, g_mean, g_var, q)``, built on first use.
+
+        Building the variance branches costs O(n^2) memory and time (seconds at n = 2000),
+        which a controller using only the mean and g_mean never pays.
+        """
+        if self._function is None:
+            s = ca.MX.sym("s", self.n_s)
+            u = ca.MX.sym("u", self.n_p)
+            e = self.expressions(s, u)
+            names = ["t_mean", "f_mean", "f_var", "g_mean", "g_var", "q"]
+            self._function = ca.Function("eafm", [s, u], [e[k] for k in names], ["s", "u"], names)
+        return self._function
+
+    @classmethod
+    def from_file(cls, afm: AnalyticForwardModel, path: str | Path, **kw: Any) -> "EAFM":
+        """Build from a model file (see the class parameters)."""
+        return cls(afm, path, **kw)
+
+    @property
+    def n_train(self) -> int:
+        """Number of training points n of the residual GP."""
+        return int(self.model.X.shape[0])
+
+    # ---- CasADi ------------------------------------------------------------------
+    def _lf_inv(self) -> ca.DM:
+        if self._Lf_inv is None:
+            self._Lf_inv = _tril_inverse_dm(self.model.f_chol)
+        return self._Lf_inv
+
+    def _lg_inv(self) -> ca.DM:
+        if self._Lg_inv is None:
+            self._Lg_inv = _tril_inverse_dm(self.model.g_chol)
+        return self._Lg_inv
+
+    def expressions(self, s: ca.MX, u: ca.MX, which: tuple[str, ...] | None = None) -> dict[str, ca.MX]:
+        """EAFM quantities as MX expressions of the symbols ``s`` (n_s, 1) and ``u`` (n_p, 1).
+
+        Parameters
+        ----------
+        s, u : casadi.MX
+        which : tuple of str, optional
+            Subset of ``("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")`` to
+            build (default all). Only the requested branches enter the graph.
+
+        Returns
+        -------
+        dict of str to casadi.MX
+        """
+        allq = ("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")
+        which = allq if which is None else tuple(which)
+        m = self.model
+        out: dict[str, ca.MX] = {}
+        x = ca.vertcat(s, u)  # eq. 3: x = [s; u]
+        xs = (x - ca.DM(self._x_mean)) / ca.DM(self._x_scale)
+        t_afm, q = self.afm.f_a(s, u)  # eq. 14
+        need_f = any(k in which for k in ("t_mean", "f_mean", "f_var"))
+        need_g = any(k in which for k in ("g_mean", "g_var"))
+        kf = self._kf.casadi_column(xs, m.X) if need_f else None
+        kg = self._kg.casadi_column(xs, m.X) if need_g else None
+        if "t_mean" in which or "f_mean" in which:
+            a = ca.dot(kf, ca.DM(np.asarray(m.f_alpha)))
+            f_mean = m.y_mean + m.y_scale * a  # GP mean g_e
+            out["f_mean"] = f_mean
+            out["t_mean"] = t_afm + f_mean  # eq. 1: T_t (f_a + g_e)
+        if "f_var" in which:
+            # epistemic variance  y_scale^2 (k** - ||L_f^-1 k||^2)  [notes/vhgpr.md prediction]
+            out["f_var"] = m.y_scale**2 * (self._kf.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
+        if need_g:
+            # g's prior mean m(x) (noise_prior eq. 1; the constant mu0 for the paper's model) and
+            # its parameter variance
+            prior, prior_var = self._gm.casadi(xs, with_variance="g_var" in which)
+        if "g_mean" in which:
+            out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + prior + self._log_y2
+        if "g_var" in which:
+            gp_var = self._kg.casadi_diag(xs)
+            if not m.g_gp_var_negligible:  # else its bound k** (vhgpr.G_GP_VAR_NEGLIGIBLE)
+                gp_var = gp_var - ca.sumsqr(ca.mtimes(self._lg_inv(), kg))
+            out["g_var"] = gp_var + prior_var
+        if "q" in which:
+            out["q"] = q
+        if "t_afm" in which:
+            out["t_afm"] = t_afm
+        return {k: out[k] for k in which}
+
+    # ---- NumPy reference -----------------------------------------------------------
+    def _x(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        s = np.atleast_2d(np.asarray(s, dtype=float))
+        s = np.broadcast_to(s, (u.shape[0], self.n_s)) if s.shape[0] == 1 else s
+        return np.hstack([s, u])
+
+    def predict(self, s: np.ndarray, u: np.ndarray) -> EAFMPrediction:
+        """Reference prediction with :meth:`FittedVHGPR.predict` and the AFM (eq. 1).
+
+        Parameters
+        ----------
+        s : ndarray, shape (n_s,) or (m, n_s)
+        u : ndarray, shape (n_p,) or (m, n_p)
+        """
+        X = self._x(s, u)
+        p = self.model.predict(X)
+        U = X[:, self.n_s:]
+        t_mean = np.asarray(self.afm.t_of(U)) + p.f_mean
+        return EAFMPrediction(t_mean=t_mean, f_mean=p.f_mean, f_var=p.f_var, g_mean=p.g_mean,
+                              g_var=p.g_var, t_var=p.y_var, q=self.afm.q_of(U))
+
+    def mean_and_grad_u(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """EAFM mean t_mean and its gradient in u at many u (vectorised, for seeding).
+
+        Parameters
+        ----------
+        s : ndarray, shape (n_s,)
+        U : ndarray, shape (m, n_p)
+
+        Returns
+        -------
+        t_mean : ndarray, shape (m,)
+        dt_du : ndarray, shape (m, n_p)
+        """
+        X = self._x(s, U)
+        xs = (X - self._x_mean) / self._x_scale
+        a, da = self._kf.cross_grad(xs, self.model.X, np.asarray(self.model.f_alpha))
+        f = self.model.y_mean + self.model.y_scale * a
+        dx = self.model.y_scale * da / self._x_scale
+        d = U @ self.afm.w_pred
+        t = self.afm.sensor.forward(d) + f  # eq. 13: the gauge reading of the tool displacement
+        dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
+        return t, dt
+
+    # ---- g's posterior (notes/vhgpr.md, prediction) at standardised inputs xs, shape (m, n_x) ----
+    def _xs(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        return (self._x(s, U) - self._x_mean) / self._x_scale
+
+    def _g_mean(self, xs: np.ndarray, Kg: np.ndarray) -> np.ndarray:
+        """g's posterior mean, shape (m,), from ``Kg = k_g(xs, X)``."""
+        return Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
+
+    def _g_gp_var(self, xs: np.ndarray, Kg: np.ndarray | None = None) -> np.ndarray:
+        """g's GP variance ``k** - ||L_g^-1 k||^2`` (O(m n^2)), or its prior bound ``k**`` when
+        negligible (O(m)), shape (m,); ``Kg = k_g(xs, X)`` when the caller has it."""
+        if self.model.g_gp_var_negligible:
+            return self._kg.diag(xs)
+        Kg = self._kg.matrix(xs, self.model.X) if Kg is None else Kg
+        v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+        return np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+
+    def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """Mean of the log noise variance at many u (O(m n), vectorised), shape (m,)."""
+        xs = self._xs(s, U)
+        return self._g_mean(xs, self._kg.matrix(xs, self.model.X))
+
+    def noise_uncertainty(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """How uncertain the predicted log noise variance is at many u, shape (m,): g's GP
+        variance plus the parametric prior mean's parameter variance, whether or not the model
+        propagates the latter into ``g_var`` (:attr:`FittedVHGPR.g_prior_mean_with_uncertainty`)."""
+        xs = self._xs(s, U)
+        return self._g_gp_var(xs) + self._gm_evidence.variance(xs)
+
+    def g_joint(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint posterior of the log noise variance at the rows of U: mean (m,), covariance (m, m).
+
+        ``cov = K_g(X*, X*) - V^T V + cov of the prior mean``, ``V = L_g^-1 K_g(X, X*)``
+        (notes/vhgpr.md prediction, for several points at once); the prior mean's parameter
+        covariance is included whether or not the model propagates it into ``g_var`` (this
+        is for comparing poses on the evidence: :func:`microctl.control.controller.compare_noise`).
+        """
+        xs = self._xs(s, U)
+        Kg = self._kg.matrix(xs, self.model.X)
+        mean = self._g_mean(xs, Kg)
+        cov = self._kg.matrix(xs, xs) + self._gm_evidence.covariance(xs, xs)
+        if not self.model.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
+            V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
+            cov = cov - V.T @ V
+        return mean, cov
+
+    def g_np_pairs(self, S: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance of the log noise variance for every pair (state S[i], pose U[j]).
+
+        The transition costs of sequence control (:mod:`microctl.control.sequence`): the noise of a
+        move depends on where the previous move left the actuators (x = [s; u], eq. 3), so a
+        move to each candidate pose is scored from each candidate previous state. The kernel
+        of g (ARD SE plus a bias; no linear part, :attr:`FittedVHGPR.g_kernel`) is separable
+        over x = [s; u] (the SE part is a product over inputs), so ``k([s_i; u_j], X) . beta = sf2 (A_s o beta) A_u^T + ...`` with
+        ``A_s`` (m1, n) and ``A_u`` (m2, n): one (m1 x n)(n x m2) product instead of m1 m2
+        kernel rows. The prior mean (``noise_prior`` eq. 1) is evaluated on the pairwise
+        features ``a_j . x + b_j`` (linear: a sum of an s part and a u part).
+
+        Parameters
+        ----------
+        S : ndarray, shape (m1, n_s)
+        U : ndarray, shape (m2, n_p)
+        with_gp_var : bool
+            As :meth:`g_np`. When g's GP variance is not negligible its exact O(m1 m2 n^2)
+            term is computed row by row (:meth:`g_np`), so callers keep m1 m2 n^2 small.
+
+        Returns
+        -------
+        mean, var : ndarray, shape (m1, m2)
+            Equal to ``g_np(S[i], U)`` row by row.
+        """
+        S = np.atleast_2d(np.asarray(S, dtype=float))
+        U = np.atleast_2d(np.asarray(U, dtype=float))
+        ns = self.n_s
+        xs_s = (S - self._x_mean[:ns]) / self._x_scale[:ns]
+        xs_u = (U - self._x_mean[ns:]) / self._x_scale[ns:]
+        kg, X, beta = self._kg, self.model.X, np.asarray(self.model.g_beta, dtype=float)
+        ls = np.asarray(kg.log_lengthscales, dtype=float)
+        A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
+        A_u = se_matrix(xs_u, X[:, ns:], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
+        mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
+        gm = self._gm
+        if gm.p == 0:
+            prior = np.full(mean.shape, float(gm.log_const))
+            prior_var = np.full(mean.shape, float(gm.variance(np.zeros((1, self.n_x)))[0]))
+        else:
+            F = np.asarray(gm.feature_matrix, dtype=float)
+            lin = ((xs_s @ F[:, :ns].T)[:, None, :] + (xs_u @ F[:, ns:].T)[None, :, :]
+                   + np.asarray(gm.feature_offset, dtype=float))             # (m1, m2, p)
+            Phi = np.concatenate([np.ones(lin.shape[:2] + (1,)), lin * lin], axis=2)
+            V = Phi @ gm.coef
+            prior = np.log(V)                                                 # noise_prior eq. 1
+            if gm.coef_cov is None:
+                prior_var = np.zeros(mean.shape)
+            else:
+                J = Phi / V[:, :, None]
+                prior_var = np.log1p(np.maximum(np.einsum("abi,ij,abj->ab", J, gm.coef_cov, J), 0.0))  # eq. 2
+        mean = mean + prior + self._log_y2
+        var = prior_var
+        if self.model.g_gp_var_negligible:
+            var = var + (kg.signal_var + kg.bias_var)
+        elif with_gp_var:  # g_np's variance: the prior mean's plus the GP's exact term, row by row
+            var = np.vstack([self._gm.variance(xs) + self._g_gp_var(xs) for xs in (self._xs(s, U) for s in S)])
+        return mean, var
+
+    def g_np(self, s: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance of the log noise variance at many u, shapes (m,), (m,).
+
+        ``with_gp_var=False`` leaves out the GP's O(m n^2) variance term ``k** - ||L_g^-1
+        k||^2`` and keeps the prior mean's parameter variance (O(m)): a cheap proxy for
+        seeding at large n.
+        """
+        xs = self._xs(s, U)
+        Kg = self._kg.matrix(xs, self.model.X)
+        var = self._gm.variance(xs)
+        if self.model.g_gp_var_negligible or with_gp_var:
+            var = var + self._g_gp_var(xs, Kg)
+        return self._g_mean(xs, Kg), var

@@ -1,0 +1,230 @@
+"""Residual data set of the EAFM (paper eq. 3), the fit, and binding the model to a stage.
+
+``x = [s_prev; u]`` and ``y = t' - T_t f_a(s_prev, u)`` for every row of a measurement log
+(``shared/spec/measurement-log.md``); :func:`train_residual_model` fits the VHGPR and
+records ``geometry_hash = stage.geometry_hash()`` and the input names, so that the model is
+refused for another stage geometry (:class:`~microctl.models.eafm.EAFM`).
+
+The test fixture that builds a model from fixed hyperparameters (no fit) is
+:func:`microctl.testing.fixed_hyperparameter_model`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from microctl.errors import ConfigError, DataError
+from microctl.gp.noise_prior import NoiseFeatures
+from microctl.gp.vhgpr import VHGPR, FittedVHGPR
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.eafm import bind_to_stage
+from microctl.util.fields import setting, validate_settings
+
+__all__ = ["NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
+           "noise_features_for", "train_residual_model", "noise_summary", "save_model"]
+
+
+@dataclass(frozen=True)
+class ResidualData:
+    """The training set of eq. 3.
+
+    Attributes
+    ----------
+    X : ndarray, shape (n, n_s + n_p)
+        ``[s_prev; u]`` per row.
+    y : ndarray, shape (n,)
+        ``t' - T_t f_a(s_prev, u)`` (µm).
+    x_names : tuple of str
+    """
+
+    X: np.ndarray
+    y: np.ndarray
+    x_names: tuple[str, ...]
+
+
+def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
+    """Residual data of eq. 3 from a :class:`~microctl.measurement.log.MeasurementLog`.
+
+    Parameters
+    ----------
+    log : MeasurementLog
+        With arrays ``u`` (n, n_p), ``t`` (n,), ``s_prev`` (n, n_s).
+    afm : AnalyticForwardModel
+    """
+    u = np.asarray(log.u, dtype=float)
+    s = np.asarray(log.s_prev, dtype=float)
+    t = np.asarray(log.t, dtype=float)
+    if u.ndim != 2 or u.shape[1] != afm.n_p or s.shape != (u.shape[0], afm.n_s) or t.shape != (u.shape[0],):
+        raise DataError(f"measurement log arrays have shapes u {u.shape}, s_prev {s.shape}, t {t.shape}; "
+                        f"expected (n, {afm.n_p}), (n, {afm.n_s}), (n,)")
+    y = t - np.asarray(afm.t_of(u))  # eq. 3: y = t' - T_t f_a(s, u)
+    names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
+    return ResidualData(X=np.hstack([s, u]), y=y, x_names=names)
+
+
+#: Prior variance of the affine trend's coefficients (standardised units: a trend of about
+#: three output standard deviations per input standard deviation is a priori plausible; the
+#: vague-prior limit in which the trend is the generalised-least-squares estimate).
+LINEAR_PRIOR_VAR = 10.0
+
+#: Noise models of the residual GP: ``physical`` (g's prior mean is the stage's stick-slip
+#: physics, :mod:`microctl.gp.noise_prior`; the default) and ``hgp`` (the paper's constant prior mean).
+NOISE_MODELS = ("physical", "hgp")
+
+
+@dataclass(frozen=True)
+class ResidualModelSettings:
+    """How the residual VHGPR of eq. 3 is built and fitted (one definition for every command).
+
+    Attributes
+    ----------
+    noise_model : str
+        ``"physical"`` (default): ``g ~ GP(m(x), K_g)`` with ``m(x) = log(c_0 + sum_i c_i dq_i^2)``,
+        ``dq_i = K_i u - q_i,prev`` (eq. 12): a noise floor plus per-actuator stick-slip
+        (:mod:`microctl.gp.noise_prior`). ``"hgp"``: the paper's ``g ~ GP(mu0, K_g)``.
+    linear_trend : bool
+        An affine trend in the pose u inside f's kernel (default True): Bayesian linear
+        regression with the vague prior :data:`LINEAR_PRIOR_VAR` (R&W 2.7), estimated by
+        generalised least squares with the noise model's weights. Calibration errors (actuator
+        gains, contact and tool offsets, sensor scale) make the AFM residual affine in u to
+        first order (through q = K u, eq. 12), and a trend extrapolates to the workspace's
+        faces where an SE kernel reverts to the mean. False: the paper's SE kernel alone.
+    se : str
+        f's SE (nonlinear) part: ``"auto"`` (default: kept only where the data pay for its
+        hyperparameters, :class:`~microctl.gp.vhgpr.VHGPR`; without the trend it is always on),
+        ``"on"``, ``"off"`` (needs the trend).
+    noise_parameter_uncertainty : bool
+        Propagate the physical noise model's parameter uncertainty into g's variance (and so
+        into the cautious objective). Default False (measured worse; see
+        :class:`~microctl.gp.vhgpr.VHGPR`); the standard errors are reported either way.
+    restarts : int
+        VHGPR optimisation runs (>= 1).
+    max_iter : int or None
+        L-BFGS-B iterations per run (None: the trainer's size-dependent default).
+    seed : int
+        Seed of the restarts.
+    """
+
+    noise_model: str = setting("physical", choices=NOISE_MODELS)
+    linear_trend: bool = setting(True)
+    se: str = setting("auto", choices=("auto", "on", "off"))
+    noise_parameter_uncertainty: bool = setting(False)
+    restarts: int = setting(2, lo=1, hi=100)
+    max_iter: int | None = setting(500, lo=1, hi=100_000, none_ok=True, kind="int")
+    seed: int = setting(0, lo=0, hi=2**63 - 1)
+
+    def __post_init__(self) -> None:
+        validate_settings(self, "residual model setting")
+        if self.se == "off" and not self.linear_trend:
+            raise ConfigError("residual model setting se: 'off' needs linear_trend: true (without the trend and "
+                              "the SE part the mean correction would be a constant); use se: auto or on")
+
+
+def actuator_step_features(afm: AnalyticForwardModel, actuators: Sequence[int] | None = None) -> NoiseFeatures:
+    """The actuator steps ``dq_i = K_i u - q_i,prev`` (eq. 12) as linear maps of x = [s; u] (eq. 3).
+
+    Parameters
+    ----------
+    afm : AnalyticForwardModel
+    actuators : sequence of int, optional
+        1-based actuator numbers to include (default: every actuator).
+
+    Returns
+    -------
+    NoiseFeatures
+        ``matrix`` shape (p, n_s + n_p): row j has -1 at ``q_i,prev`` and K_i on u.
+    """
+    idx = np.arange(afm.n_q) if actuators is None else np.array(sorted(set(actuators)), dtype=int) - 1
+    A = np.zeros((idx.size, afm.n_s + afm.n_p))
+    A[np.arange(idx.size), 1 + idx] = -1.0  # s = [t_prev; q_prev]
+    A[:, afm.n_s:] = afm.K[idx]
+    return NoiseFeatures(A, np.zeros(idx.size), tuple(f"d{afm.actuator_names[i]}" for i in idx))
+
+
+def noise_features_for(afm: AnalyticForwardModel) -> NoiseFeatures:
+    """The physical noise model's features for a stage.
+
+    Every actuator's step, unless the stage's corrections carry diagnosed stick-slip
+    (``stage.corrections.actuator_friction``, written into ``extended.yaml`` by ``microctl
+    diagnose``): then exactly the actuators the diagnosis found it on, so the model does not
+    spend data on (or fear) a friction the diagnosis ruled out; g's GP still models what the
+    diagnosed physics leaves.
+    """
+    diagnosed = afm.stage.corrections.actuator_friction
+    return actuator_step_features(afm, [c.actuator for c in diagnosed] if diagnosed else None)
+
+
+def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
+                         settings: ResidualModelSettings | None = None, *,
+                         max_time: float | None = None) -> FittedVHGPR:
+    """Fit the VHGPR to the residual data and bind it to the stage geometry.
+
+    Parameters
+    ----------
+    data : ResidualData
+    afm : AnalyticForwardModel
+    settings : ResidualModelSettings, optional
+        Default :class:`ResidualModelSettings()` (the physical noise model, linear trend).
+    max_time : float, optional
+        Wall-clock budget of the fit (s).
+
+    Returns
+    -------
+    FittedVHGPR
+        With ``geometry_hash = afm.stage.geometry_hash()``, ``x_names`` = state (``*_prev``)
+        and ``u_*`` names, ``y_name = "residual_um"``.
+    """
+    st = settings or ResidualModelSettings()
+    features = noise_features_for(afm) if st.noise_model == "physical" else None
+    # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
+    linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
+    model = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
+                  se=st.se if st.linear_trend else "on", noise_features=features, n_restarts=st.restarts,
+                  propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
+                  max_iter=st.max_iter, random_state=st.seed, max_time=max_time).fit(data.X, data.y)
+    return bind_to_stage(model, afm)
+
+
+def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
+    """The physical noise model's parameters in the diagnosis vocabulary's units.
+
+    ``floor_std_um = sqrt(c_0) y_scale`` (gauge noise and driver accuracy together) and, per
+    actuator, ``friction_std_per_um = sqrt(c_i) / |s_i|`` with ``s_i`` the AFM's tool
+    sensitivity to actuator i (``w K^+``: how a slip of actuator i moves the tool when the four
+    balls share it elastically), comparable with ``actuator_friction.std_per_um``.
+
+    Returns
+    -------
+    dict
+        ``{"noise_model", "floor_std_um", "actuators": {name: {"tool_std_per_um",
+        "friction_std_per_um"}}}``; only ``noise_model`` for the ``hgp`` model.
+    """
+    out: dict = {"noise_model": model.noise_model}
+    if model.noise_model != "physical":
+        return out
+    sens_all = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
+    sens = [sens_all[afm.actuator_names.index(f.removeprefix("d"))] for f in model.g_feature_names]
+    c = np.exp(np.asarray(model.g_log_feature_coef))
+    params = model.info.get("noise_parameters") or {}
+    c_std = np.asarray(params.get("c_std", [math.nan] * (1 + c.size)), dtype=float)
+    out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
+    out["actuators"] = {}
+    for name, ci, sd, si in zip(model.g_feature_names, c, c_std[1:], sens):
+        # std per µm = sqrt(c) (c in units of y_scale^2 per (µm / y_scale)^2 = per µm^2 of step);
+        # its standard error by the delta method, bounded by sqrt(sd) where c is near zero
+        se = min(0.5 * sd / math.sqrt(ci), math.sqrt(sd)) if ci > 0 and math.isfinite(sd) else math.nan
+        out["actuators"][name.removeprefix("d")] = {
+            "tool_std_per_um": float(math.sqrt(ci)), "tool_std_per_um_se": float(se),
+            "friction_std_per_um": float(math.sqrt(ci) / max(abs(si), 1e-12)),
+            "friction_std_per_um_se": float(se / max(abs(si), 1e-12))}
+    return out
+
+
+def save_model(model: FittedVHGPR, path: str | Path) -> None:
+    """Write the model (``.npz``)."""
+    model.save(path)

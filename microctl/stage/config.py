@@ -1,0 +1,614 @@
+"""Stage configuration: YAML → frozen dataclasses, validated at load.
+
+A stage file has two top-level sections::
+
+    stage:     # the geometry the analytic forward model (AFM) is built from (paper Table I)
+    backend:   # which stage the commands drive: the simulated one or serial hardware
+
+Every problem is a :class:`~microctl.errors.ConfigError` whose message names the file
+and the field path (``stage.actuators[2].normal``) and says what would be valid; unknown
+keys are rejected at every level. See ``docs/config.md`` for the full reference.
+
+Units: lengths of the platform motion and actuators in µm, rotations in mrad, geometry
+(contact points, tool point) in mm, so that mrad × mm = µm.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from microctl.errors import ConfigError
+from microctl.stage.causes import REGISTRY, Effects
+from microctl.stage.geometry import TWIST_COMPONENTS, Actuator, Physics, Stage, Tool
+from microctl.stage.kinematics import contact_map, inverse_kinematics_matrix
+from microctl.util.fields import FieldReader
+
+#: Largest condition number accepted for the contact map H R^T J (eq. 10) and the
+#: inverse-kinematics matrix K; beyond it the pose is not determined by the actuators.
+MAX_CONDITION = 1e6
+
+#: Smallest |n_i · d_i| accepted: a ball pushed more than ~84° away from its contact
+#: normal needs ten times its stroke to move the platform (ill-conditioned eq. 10).
+MIN_TRANSMISSION = 0.1
+
+#: Largest magnitude of an actuator's ``range_um`` or ``limit_um``, µm. A piezo stroke is tens
+#: to hundreds of µm; a bound beyond 10 mm is a unit mistake (nm typed as µm), not a stage.
+MAX_STROKE_UM = 1e4
+
+#: Longest port timeout, on-target timeout or poll interval accepted, s (pyserial cannot wait
+#: much longer than this on every platform, and a device slower than an hour is broken).
+MAX_WAIT_S = 3600.0
+
+#: Fastest baud rate accepted (real serial adapters stop well below it).
+MAX_BAUDRATE = 100_000_000
+
+
+# --------------------------------------------------------------------------------------
+# backend dataclasses (the stage geometry: microctl.stage.geometry)
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SimulatedBackend:
+    """The simulated stage (``backend.simulated``).
+
+    Attributes
+    ----------
+    seed : int
+        Seed of every random draw; the same config and seed give the same data.
+    gauge_noise_std_um : float
+        Standard deviation of the gauge reading noise, µm.
+    driver_accuracy_um : float
+        Standard deviation of each driver's positioning error, µm (paper: 0.01 µm).
+    move_time_s : float
+        Simulated time a move takes to settle (drift accumulates with it), s.
+    effects : Effects
+        The physical defects the simulated stage has (the truth a diagnosis must find).
+    """
+
+    seed: int = 0
+    gauge_noise_std_um: float = 0.05
+    driver_accuracy_um: float = 0.01
+    move_time_s: float = 1.0
+    effects: Effects = field(default_factory=Effects)
+
+
+@dataclass(frozen=True)
+class SerialController:
+    """One PZT servo driver (PI GCS 2 subset)."""
+
+    name: str
+    url: str
+    baudrate: int = 115200
+    timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class AxisMap:
+    """Where an actuator is driven: (controller name, axis id)."""
+
+    controller: str
+    axis: str
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """The displacement gauge's line protocol."""
+
+    url: str
+    baudrate: int = 115200
+    timeout_s: float = 1.0
+    query: str = "MEAS?"
+    eol: str = "\r\n"
+    reply_pattern: str = r"^\s*\+?(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
+    samples: int = 1
+    zero_at_start: bool = False
+    tare_samples: int = 20
+
+
+@dataclass(frozen=True)
+class SerialBackend:
+    """Serial hardware (``backend.serial``; shared/spec/serial-protocol.md)."""
+
+    controllers: tuple[SerialController, ...]
+    axes: tuple[tuple[str, AxisMap], ...]
+    gauge: Gauge
+    on_target_timeout_s: float = 5.0
+    poll_interval_s: float = 0.005
+    retries: int = 2
+
+    def axis_of(self, actuator: str) -> AxisMap:
+        """The (controller, axis) an actuator is driven by."""
+        return dict(self.axes)[actuator]
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Which stage the commands drive.
+
+    Attributes
+    ----------
+    kind : str
+        ``"simulated"`` or ``"serial"``.
+    simulated : SimulatedBackend
+        Simulator settings (also what ``microctl emulate`` serves).
+    serial : SerialBackend or None
+        Hardware settings; required when ``kind == "serial"``.
+    """
+
+    kind: str = "simulated"
+    simulated: SimulatedBackend = field(default_factory=SimulatedBackend)
+    serial: SerialBackend | None = None
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """A whole stage file: the model and the backend.
+
+    Attributes
+    ----------
+    stage : Stage
+    backend : Backend
+    source : str
+        The file it was read from (for messages).
+    """
+
+    stage: Stage
+    backend: Backend = field(default_factory=Backend)
+    source: str = "<memory>"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The YAML form of the whole file."""
+        b = self.backend
+        backend: dict[str, Any] = {"kind": b.kind}
+        sim = b.simulated
+        backend["simulated"] = {
+            "seed": sim.seed,
+            "gauge_noise_std_um": sim.gauge_noise_std_um,
+            "driver_accuracy_um": sim.driver_accuracy_um,
+            "move_time_s": sim.move_time_s,
+        }
+        if not sim.effects.is_empty():
+            backend["simulated"]["effects"] = sim.effects.to_dict()
+        if b.serial is not None:
+            s = b.serial
+            backend["serial"] = {
+                "controllers": [asdict(c) for c in s.controllers],
+                "axes": {name: asdict(m) for name, m in s.axes},
+                "gauge": asdict(s.gauge),
+                "on_target_timeout_s": s.on_target_timeout_s,
+                "poll_interval_s": s.poll_interval_s,
+                "retries": s.retries,
+            }
+        return {"stage": self.stage.to_dict(), "backend": backend}
+
+    def dump_yaml(self) -> str:
+        """YAML text that :func:`load_stage_config` reads back to an equal config."""
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+# --------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------
+
+
+def _parse_effects(ctx: FieldReader, raw: Any, path: str, n_act: int) -> Effects:
+    """Parse ``effects`` / ``corrections``: one key per cause of the registry (:mod:`microctl.stage.causes`).
+
+    Per-actuator causes are lists (at most one entry per actuator), the others one mapping.
+    """
+    if raw is None:
+        return Effects()
+    raw = ctx.mapping(raw, path, list(REGISTRY))
+    causes = []
+    for name, cls in REGISTRY.items():
+        if name not in raw or raw[name] is None:
+            continue
+        if not cls.per_actuator:
+            causes.append(_parse_cause(ctx, cls, raw[name], f"{path}.{name}", n_act))
+            continue
+        entries = raw[name]
+        if not isinstance(entries, list):
+            raise ctx.fail(f"{path}.{name}", "expected a list of entries, one per actuator")
+        seen: set[int] = set()
+        for k, entry in enumerate(entries):
+            c = _parse_cause(ctx, cls, entry, f"{path}.{name}[{k}]", n_act)
+            if c.actuator in seen:
+                raise ctx.fail(f"{path}.{name}[{k}].actuator", f"actuator {c.actuator} appears twice")
+            seen.add(c.actuator)
+            causes.append(c)
+    return Effects.of(causes)
+
+
+def _parse_cause(ctx: FieldReader, cls: type, raw: Any, path: str, n_act: int) -> Any:
+    names = [f.name for f in fields(cls)]
+    raw = ctx.mapping(raw, path, names, required=names)
+    kwargs: dict[str, Any] = {}
+    if cls.per_actuator:
+        kwargs["actuator"] = ctx.integer(raw["actuator"], f"{path}.actuator", lo=1, hi=n_act)
+    for p in cls.params:
+        rule = {"positive": {"positive": True}, "nonneg": {"nonneg": True}}.get(p.rule or "", {})
+        kwargs[p.name] = ctx.number(raw[p.name], f"{path}.{p.name}", **rule)
+    return cls(**kwargs)
+
+
+def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
+    raw = ctx.mapping(
+        raw, "stage", ["name", "dof", "actuators", "tool", "physics", "corrections"], required=["actuators", "tool"]
+    )
+    name = ctx.string(raw.get("name", "stage"), "stage.name")
+    dof_raw = raw.get("dof", ["z", "rx", "ry"])
+    if not isinstance(dof_raw, list) or not dof_raw:
+        raise ctx.fail("stage.dof", f"expected a non-empty list of twist components from {list(TWIST_COMPONENTS)}")
+    dof = []
+    for i, d in enumerate(dof_raw):
+        if d not in TWIST_COMPONENTS:
+            raise ctx.fail(f"stage.dof[{i}]", f"'{d}' is not a twist component; valid: {', '.join(TWIST_COMPONENTS)}")
+        if d in dof:
+            raise ctx.fail(f"stage.dof[{i}]", f"'{d}' appears twice")
+        dof.append(d)
+    dof.sort(key=TWIST_COMPONENTS.index)
+    if tuple(dof) != tuple(dof_raw):
+        raise ctx.fail("stage.dof", f"list the DoF in twist order, i.e. {dof}")
+
+    acts_raw = raw["actuators"]
+    if not isinstance(acts_raw, list):
+        raise ctx.fail("stage.actuators", "expected a list of actuators")
+    if len(acts_raw) < len(dof):
+        raise ctx.fail(
+            "stage.actuators",
+            f"{len(acts_raw)} actuators cannot determine {len(dof)} DoF; give at least {len(dof)}",
+        )
+    actuators = []
+    for i, a in enumerate(acts_raw):
+        p = f"stage.actuators[{i}]"
+        a = ctx.mapping(a, p, ["name", "contact_mm", "normal", "direction", "range_um", "limit_um"], ["contact_mm"])
+        act = Actuator(
+            name=ctx.string(a.get("name", f"q{i + 1}"), f"{p}.name"),
+            contact_mm=ctx.vector(a["contact_mm"], f"{p}.contact_mm", 3),  # type: ignore[arg-type]
+            normal=ctx.unit_vector(a.get("normal", [0, 0, 1]), f"{p}.normal"),
+            direction=ctx.unit_vector(a.get("direction", [0, 0, 1]), f"{p}.direction"),
+            range_um=ctx.interval(a.get("range_um", [0, 32]), f"{p}.range_um", max_abs=MAX_STROKE_UM),
+            limit_um=ctx.interval(a.get("limit_um", [0, 38]), f"{p}.limit_um", max_abs=MAX_STROKE_UM),
+        )
+        if act.range_um[0] < act.limit_um[0] or act.range_um[1] > act.limit_um[1]:
+            raise ctx.fail(
+                f"{p}.range_um",
+                f"{list(act.range_um)} must lie inside the hardware limit {list(act.limit_um)}",
+            )
+        if any(act.name == b.name for b in actuators):
+            raise ctx.fail(f"{p}.name", f"actuator name '{act.name}' is used twice")
+        actuators.append(act)
+
+    t = ctx.mapping(raw["tool"], "stage.tool", ["name", "point_mm", "direction"], ["point_mm"])
+    tool = Tool(
+        name=ctx.string(t.get("name", "t"), "stage.tool.name"),
+        point_mm=ctx.vector(t["point_mm"], "stage.tool.point_mm", 3),  # type: ignore[arg-type]
+        direction=ctx.unit_vector(t.get("direction", [0, 0, 1]), "stage.tool.direction"),
+    )
+    if tool.name in {a.name for a in actuators} or tool.name in dof:
+        raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
+
+    ph = ctx.mapping(
+        raw.get("physics"),
+        "stage.physics",
+        ["contact_stiffness_n_per_um", "preload_n", "flexure_stiffness"],
+        none_ok=True,
+    )
+    default = Physics()
+    flex_default = dict(zip(("z", "rx", "ry"), default.flexure_stiffness))
+    flex_raw = ph.get("flexure_stiffness", [flex_default.get(d, 1.0) for d in dof])
+    physics = Physics(
+        contact_stiffness_n_per_um=ctx.number(
+            ph.get("contact_stiffness_n_per_um", default.contact_stiffness_n_per_um),
+            "stage.physics.contact_stiffness_n_per_um",
+            positive=True,
+        ),
+        preload_n=ctx.number(ph.get("preload_n", default.preload_n), "stage.physics.preload_n", positive=True),
+        flexure_stiffness=ctx.vector(flex_raw, "stage.physics.flexure_stiffness", len(dof)),
+    )
+    for i, k in enumerate(physics.flexure_stiffness):
+        if k <= 0:
+            raise ctx.fail(f"stage.physics.flexure_stiffness[{i}]", f"must be > 0, got {k!r}")
+
+    # corrections: what a diagnosis found. Mean causes correct the AFM (static ones) or the
+    # extended model (dynamic ones); noise causes (stick-slip) tell the residual model which
+    # actuators scatter (microctl.models.training.noise_features_for)
+    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
+    stage = Stage(
+        name=name,
+        dof=tuple(dof),
+        actuators=tuple(actuators),
+        tool=tool,
+        physics=physics,
+        corrections=corrections,
+    )
+    _check_conditioning(ctx, stage)
+    return stage
+
+
+def _check_conditioning(ctx: FieldReader, stage: Stage) -> None:
+    """Refuse geometries where H R^T J (eq. 10) or K (eq. 12) is singular or ill-conditioned."""
+
+    hrj, _ = contact_map(stage)
+    for i, a in enumerate(stage.actuators):
+        nd = hrj[i, i]
+        if abs(nd) < 1e-12:
+            raise ctx.fail(
+                f"stage.actuators[{i}].direction",
+                "is perpendicular to the contact normal (n·d = 0): the ball cannot push the platform, so "
+                "H R^T J (eq. 10) is singular; give a direction with a component along the normal",
+            )
+        if abs(nd) < MIN_TRANSMISSION:
+            raise ctx.fail(
+                f"stage.actuators[{i}].direction",
+                f"makes H R^T J (eq. 10) ill-conditioned: n·d = {nd:.3g}, need |n·d| >= {MIN_TRANSMISSION} "
+                "(direction within ~84° of the contact normal)",
+            )
+    cond = np.linalg.cond(hrj)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ctx.fail(
+            "stage.actuators",
+            f"H R^T J (eq. 10) is ill-conditioned (condition number {cond:.3g} > {MAX_CONDITION:g}); "
+            "tilt the directions closer to the contact normals",
+        )
+    K = inverse_kinematics_matrix(stage)
+    sv = np.linalg.svd(K, compute_uv=False)
+    if sv[-1] <= sv[0] / MAX_CONDITION:
+        raise ctx.fail(
+            "stage.actuators",
+            f"the contact points do not determine the DoF {list(stage.dof)} (inverse kinematics K has "
+            f"condition number {sv[0] / max(sv[-1], 1e-300):.3g}); place the contacts so that no platform "
+            "motion leaves every contact height unchanged (e.g. not all on one line)",
+        )
+
+
+def _parse_backend(ctx: FieldReader, raw: Any, stage: Stage) -> Backend:
+    if raw is None:
+        return Backend()
+    raw = ctx.mapping(raw, "backend", ["kind", "simulated", "serial"])
+    kind = raw.get("kind", "simulated")
+    if kind not in ("simulated", "serial"):
+        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: simulated, serial")
+    s = ctx.mapping(
+        raw.get("simulated"),
+        "backend.simulated",
+        ["seed", "gauge_noise_std_um", "driver_accuracy_um", "move_time_s", "effects"],
+        none_ok=True,
+    )
+    d = SimulatedBackend()
+    sim = SimulatedBackend(
+        seed=ctx.integer(s.get("seed", d.seed), "backend.simulated.seed", lo=0),
+        gauge_noise_std_um=ctx.number(
+            s.get("gauge_noise_std_um", d.gauge_noise_std_um), "backend.simulated.gauge_noise_std_um", nonneg=True
+        ),
+        driver_accuracy_um=ctx.number(
+            s.get("driver_accuracy_um", d.driver_accuracy_um), "backend.simulated.driver_accuracy_um", nonneg=True
+        ),
+        move_time_s=ctx.number(s.get("move_time_s", d.move_time_s), "backend.simulated.move_time_s", positive=True),
+        effects=_parse_effects(ctx, s.get("effects"), "backend.simulated.effects", stage.n_act),
+    )
+    serial = None
+    if raw.get("serial") is not None:
+        serial = _parse_serial(ctx, raw["serial"], stage)
+    if kind == "serial" and serial is None:
+        raise ctx.fail("backend.serial", "is required when backend.kind is 'serial'")
+    return Backend(kind=kind, simulated=sim, serial=serial)
+
+
+def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
+    p = "backend.serial"
+    raw = ctx.mapping(
+        raw,
+        p,
+        ["controllers", "axes", "gauge", "on_target_timeout_s", "poll_interval_s", "retries"],
+        required=["controllers", "axes", "gauge"],
+    )
+    if not isinstance(raw["controllers"], list) or not raw["controllers"]:
+        raise ctx.fail(f"{p}.controllers", "expected a non-empty list of drivers")
+    controllers = []
+    for i, c in enumerate(raw["controllers"]):
+        cp = f"{p}.controllers[{i}]"
+        c = ctx.mapping(c, cp, ["name", "url", "baudrate", "timeout_s"], ["name", "url"])
+        ctrl = SerialController(
+            name=ctx.string(c["name"], f"{cp}.name"),
+            url=ctx.string(c["url"], f"{cp}.url"),
+            baudrate=ctx.integer(c.get("baudrate", 115200), f"{cp}.baudrate", lo=1, hi=MAX_BAUDRATE),
+            timeout_s=ctx.number(c.get("timeout_s", 1.0), f"{cp}.timeout_s", positive=True, hi=MAX_WAIT_S),
+        )
+        if any(ctrl.name == o.name for o in controllers):
+            raise ctx.fail(f"{cp}.name", f"controller name '{ctrl.name}' is used twice")
+        controllers.append(ctrl)
+    names = [c.name for c in controllers]
+    axes_raw = ctx.mapping(raw["axes"], f"{p}.axes", stage.actuator_names, required=stage.actuator_names)
+    axes = []
+    used = set()
+    for act in stage.actuator_names:
+        ap = f"{p}.axes.{act}"
+        m = ctx.mapping(axes_raw[act], ap, ["controller", "axis"], ["controller", "axis"])
+        ctrl = ctx.string(m["controller"], f"{ap}.controller")
+        if ctrl not in names:
+            raise ctx.fail(f"{ap}.controller", f"'{ctrl}' is not a configured controller; valid: {', '.join(names)}")
+        if isinstance(m["axis"], bool) or not isinstance(m["axis"], (str, int)):
+            raise ctx.fail(f"{ap}.axis", f"expected an axis id such as '1' or 'A', got {m['axis']!r}")
+        axis = str(m["axis"]).strip()
+        if not axis or any(ch.isspace() for ch in axis):
+            raise ctx.fail(f"{ap}.axis", f"{m['axis']!r} is not a valid axis id (no spaces)")
+        ctx.ascii_text(axis, f"{ap}.axis", what="an axis id")
+        if "=" in axis:
+            raise ctx.fail(f"{ap}.axis", f"'{axis}' is not a valid axis id ('=' separates axis and value in replies)")
+        if (ctrl, axis) in used:
+            raise ctx.fail(f"{ap}.axis", f"axis {axis} of {ctrl} is mapped to two actuators")
+        used.add((ctrl, axis))
+        axes.append((act, AxisMap(controller=ctrl, axis=axis)))
+    gp = f"{p}.gauge"
+    g = ctx.mapping(
+        raw["gauge"], gp,
+        ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples", "zero_at_start", "tare_samples"],
+        ["url"],
+    )
+    gd = Gauge(url="")
+    pattern = g.get("reply_pattern", gd.reply_pattern)
+    try:
+        compiled = re.compile(pattern)
+    except (re.error, TypeError) as exc:
+        raise ctx.fail(f"{gp}.reply_pattern", f"is not a valid regular expression: {exc}") from None
+    if compiled.groups > 1:
+        raise ctx.fail(f"{gp}.reply_pattern", "must have at most one capture group (the number)")
+    query = ctx.ascii_text(g.get("query", gd.query), f"{gp}.query", what="the gauge query")
+    eol = ctx.ascii_text(g.get("eol", gd.eol), f"{gp}.eol", what="the line ending", blank_ok=True, controls_ok=True)
+    if not eol.endswith(("\n", "\r")):
+        raise ctx.fail(f"{gp}.eol", f"{eol!r} must end with a line feed or carriage return, e.g. \"\\r\\n\"")
+    gauge = Gauge(
+        url=ctx.string(g["url"], f"{gp}.url"),
+        baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1, hi=MAX_BAUDRATE),
+        timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True, hi=MAX_WAIT_S),
+        query=query,
+        eol=eol,
+        reply_pattern=pattern,
+        samples=ctx.integer(g.get("samples", gd.samples), f"{gp}.samples", lo=1, hi=10000),
+        zero_at_start=ctx.boolean(g.get("zero_at_start", gd.zero_at_start), f"{gp}.zero_at_start"),
+        tare_samples=ctx.integer(g.get("tare_samples", gd.tare_samples), f"{gp}.tare_samples", lo=1, hi=10000),
+    )
+    if gauge.zero_at_start:
+        for i, a in enumerate(stage.actuators):
+            if not a.range_um[0] <= 0.0 <= a.range_um[1]:
+                raise ctx.fail(
+                    f"{gp}.zero_at_start",
+                    f"tares the gauge at the zero state q = 0, but actuator {a.name} (stage.actuators[{i}]) has "
+                    f"range_um {list(a.range_um)}, which excludes 0; set zero_at_start: false or widen the range",
+                )
+    on_target_timeout_s = ctx.number(raw.get("on_target_timeout_s", 5.0), f"{p}.on_target_timeout_s",
+                                     positive=True, hi=MAX_WAIT_S)
+    poll_interval_s = ctx.number(raw.get("poll_interval_s", 0.005), f"{p}.poll_interval_s", positive=True,
+                                 hi=on_target_timeout_s)
+    return SerialBackend(
+        controllers=tuple(controllers),
+        axes=tuple(axes),
+        gauge=gauge,
+        on_target_timeout_s=on_target_timeout_s,
+        poll_interval_s=poll_interval_s,
+        retries=ctx.integer(raw.get("retries", 2), f"{p}.retries", lo=0, hi=100),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# public loaders
+# --------------------------------------------------------------------------------------
+
+
+def parse_stage_config(data: Any, source: str = "<memory>") -> StageConfig:
+    """Validate an already-parsed YAML document.
+
+    Parameters
+    ----------
+    data : mapping
+        The document, with keys ``stage`` and optionally ``backend``.
+    source : str
+        Name used in error messages.
+
+    Raises
+    ------
+    ConfigError
+        On any invalid or unknown field.
+    """
+    ctx = FieldReader(source)
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: expected a YAML mapping with a 'stage' section, got {type(data).__name__}")
+    top = ctx.mapping(data, "<top>", ["stage", "backend"], required=["stage"])
+    stage = _parse_stage(ctx, top["stage"])
+    backend = _parse_backend(ctx, top.get("backend"), stage)
+    return StageConfig(stage=stage, backend=backend, source=source)
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses duplicate keys and reads ``1e-3`` as a number.
+
+    YAML 1.1 (PyYAML) silently keeps the last of two equal keys in a mapping and reads a
+    float without a dot (``1e-3``) as text; a config must not lose a field that way.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, yaml.Node] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.get(key)
+            except TypeError:  # an unhashable key: the base class says so
+                break
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"duplicate key {key!r} (first at line {first.start_mark.line + 1}); "
+                            "a key may appear once per mapping",
+                    problem_mark=key_node.start_mark,
+                )
+            seen[key] = key_node
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(path: str | Path) -> Any:
+    """Read a UTF-8 YAML file (a leading BOM is fine), turning every problem into :class:`ConfigError`.
+
+    Refused, each with the file and, where it applies, the line and column: an unreadable
+    file or a directory, bytes that are not UTF-8, invalid YAML, a key given twice in one
+    mapping, nesting too deep to read.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}, column {column} cannot be "
+            "decoded; save the file as UTF-8"
+        ) from None
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{path}: invalid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply to read") from None
+
+
+def load_stage_config(path: str | Path) -> StageConfig:
+    """Load and validate a stage YAML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, e.g. ``configs/stage/table1.yaml``.
+
+    Returns
+    -------
+    StageConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the field path.
+    """
+    return parse_stage_config(load_yaml(path), source=str(path))
+

@@ -1,0 +1,3 @@
+"""Small shared helpers with no knowledge of stages or models: settings fields, JSON/CSV I/O,
+progress lines, BLAS threads, statistics.
+"""

@@ -1,0 +1,228 @@
+"""The optimal controller (eq. 4) and the baselines, each checked against an independent answer."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from microctl.control.controller import (
+    AFMController,
+    ControllerSettings,
+    EAFMMeanController,
+    OptimalController,
+)
+from microctl.errors import ConfigError, UnreachableTargetError
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.eafm import EAFM, bind_to_stage
+from microctl.stage.config import load_stage_config
+from microctl.testing import fixed_hyperparameter_model
+
+ROOT = Path(__file__).resolve().parents[2]
+WELL = (0.5, -0.3)  # planted low-noise region in (rx, ry), mrad: it crosses every target's redundant set
+
+
+@pytest.fixture(scope="module")
+def afm() -> AnalyticForwardModel:
+    return AnalyticForwardModel(load_stage_config(ROOT / "configs/stage/table1.yaml").stage)
+
+
+def planted_model(afm: AnalyticForwardModel, n: int = 120, seed: int = 0):
+    """Residual GP whose noise std is 0.2 µm except 0.02 µm near (rx, ry) = WELL."""
+    rng = np.random.default_rng(seed)
+    U = afm.workspace.sample(n, rng)
+    S = np.column_stack([rng.uniform(0, 30, n), rng.uniform(0, 32, (n, afm.n_q))])
+    ln = np.log(0.2**2) + (np.log(0.02**2) - np.log(0.2**2)) * np.exp(
+        -((U[:, 1] - WELL[0]) ** 2 + (U[:, 2] - WELL[1]) ** 2) / (2 * 0.15**2))
+    y = 0.3 * np.sin(U[:, 0] / 8) + 0.2 * U[:, 1] + np.exp(ln / 2) * rng.standard_normal(n)
+    m = fixed_hyperparameter_model(np.hstack([S, U]), y, ln,
+                                   f_log_lengthscales=np.array([3.0, 3, 3, 3, 3, 0.0, -0.7, -0.7]))
+    return bind_to_stage(m, afm)
+
+
+@pytest.fixture(scope="module")
+def eafm(afm):
+    return EAFM(afm, planted_model(afm))
+
+
+@pytest.fixture(scope="module")
+def opt(eafm):
+    return OptimalController(eafm)
+
+
+def _states(afm, m, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(0, 30, m), rng.uniform(0, 32, (m, afm.n_q))])
+
+
+def _check_valid(res, afm, eafm, target):
+    q = afm.K @ res.u
+    assert np.all(q >= afm.lo - 1e-9) and np.all(q <= afm.hi + 1e-9)
+    assert np.all(res.q >= afm.lo) and np.all(res.q <= afm.hi)
+    t = eafm.predict(res.state, res.u).t_mean[0]
+    assert abs(t - target) <= 1e-8
+
+
+def test_planted_low_noise_region_is_chosen(afm, eafm, opt):
+    base = AFMController(afm, reporter=eafm)
+    for target in (12.0, 18.0, 24.0):  # targets whose redundant set crosses the well inside the ranges
+        r = opt.solve(target)
+        b = base.solve(target)
+        assert r.success
+        assert np.hypot(r.u[1] - WELL[0], r.u[2] - WELL[1]) < 0.15
+        assert np.hypot(b.u[1] - WELL[0], b.u[2] - WELL[1]) > 0.3
+        assert r.predicted_std_um < b.predicted_std_um
+        assert abs(float(afm.t_of(b.u)) - target) <= 1e-8
+
+
+@pytest.mark.parametrize("cls", [OptimalController, EAFMMeanController])
+def test_constraint_and_ranges_on_every_solution(afm, eafm, cls):
+    ctl = cls(eafm)
+    rng = np.random.default_rng(2)
+    lo, hi = afm.t_range()
+    for s, target in zip(_states(afm, 15), rng.uniform(lo + 2, hi - 2, 15)):
+        r = ctl.solve(target, s)
+        assert r.success, r.status
+        _check_valid(r, afm, eafm, target)
+
+
+def test_afm_baseline_is_the_smallest_motion(afm):
+    ctl = AFMController(afm)
+    rng = np.random.default_rng(3)
+    for s in _states(afm, 6, seed=3):
+        target = rng.uniform(0, 40)
+        r = ctl.solve(target, s)
+        assert abs(float(afm.t_of(r.u)) - target) <= 1e-8
+        q = afm.K @ r.u
+        assert np.all(q >= afm.lo - 1e-9) and np.all(q <= afm.hi + 1e-9)
+        # independent: random feasible points of the same plane never move the actuators less
+        U = afm.workspace.sample(4000, rng)
+        U = U + np.outer((target - U @ afm.w_pred) / (afm.w_pred @ afm.w_pred), afm.w_pred)
+        U = U[afm.workspace.contains(U)]
+        other = np.sum((U @ afm.K.T - s[1:]) ** 2, axis=1)
+        assert r.objective <= other.min() + 1e-9
+
+
+def _fd_grad(f, u, h):
+    g = np.zeros(u.size)
+    for j in range(u.size):
+        e = np.zeros(u.size)
+        e[j] = h[j]
+        g[j] = (f(u + e) - f(u - e)) / (2 * h[j])
+    return g
+
+
+@pytest.mark.parametrize("r_e", ["noise_median", "noise_mean", "noise_quantile"])
+def test_first_order_optimality(afm, eafm, r_e):
+    opt_ = OptimalController(eafm, ControllerSettings(r_e=r_e))
+    h = np.array([1e-5, 1e-7, 1e-7])
+    rng = np.random.default_rng(4)
+    for s, target in zip(_states(afm, 6, seed=5), rng.uniform(-20, 50, 6)):
+        r = opt_.solve(target, s)
+        assert r.success
+        u = r.u
+
+        def obj(v):  # eq. 4 from the NumPy reference prediction
+            return float(-np.expm1(-_r_e(eafm, s, v, r_e)))
+
+        gJ = _fd_grad(obj, u, h)
+        gc = _fd_grad(lambda v: float(eafm.predict(s, v).t_mean[0]), u, h)
+        q = afm.K @ u
+        rows, signs = [gc], [0.0]
+        for j in range(afm.n_q):
+            if q[j] - afm.lo[j] < 1e-6:
+                rows.append(afm.K[j]); signs.append(1.0)   # lower bound: multiplier >= 0
+            elif afm.hi[j] - q[j] < 1e-6:
+                rows.append(-afm.K[j]); signs.append(1.0)  # upper bound
+        A = np.array(rows).T
+        coef, *_ = np.linalg.lstsq(A, gJ, rcond=None)
+        resid = gJ - A @ coef
+        assert np.linalg.norm(resid) <= 1e-4 * max(np.linalg.norm(gJ), 1e-12) + 1e-12
+        for c, sg in zip(coef[1:], signs[1:]):
+            assert c >= -1e-6 * np.linalg.norm(gJ)
+
+
+def _r_e(eafm, s, u, r_e, kappa=1.645):
+    """r_e of eq. 4 written here from the NumPy prediction (objectives module docstring)."""
+    p = eafm.predict(s, u)
+    if r_e == "noise_median":
+        return float(np.exp(p.g_mean[0]))
+    if r_e == "noise_quantile":
+        return float(np.exp(p.g_mean[0] + kappa * np.sqrt(p.g_var[0])))
+    return float(np.exp(p.g_mean[0] + 0.5 * p.g_var[0]))
+
+
+def test_reaches_the_dense_grid_optimum(afm, eafm, opt):
+    # independent answer: a dense grid over the redundant set, Newton-projected
+    rng = np.random.default_rng(6)
+    for target in rng.uniform(-30, 60, 6):
+        r = opt.solve(target)
+        U, obj, _ = opt._seeds(afm.zero_state(), target, 81)
+        assert r.objective <= np.min(obj) * (1 + 1e-6)
+
+
+def test_unreachable_target_gives_interval(afm, eafm, opt):
+    with pytest.raises(UnreachableTargetError, match=r"unreachable.*reaches \[-?[0-9.]+, [0-9.]+\] µm"):
+        opt.solve(500.0)
+    # the bound in full precision (the hand-derived Table I range, test_afm), not rounded
+    lo, hi = afm.t_range()
+    with pytest.raises(UnreachableTargetError, match=rf"AFM reaches \[{re.escape(repr(lo))}, {re.escape(repr(hi))}\]"):
+        AFMController(afm).solve(-500.0)
+
+
+def test_solver_built_once_per_model(afm, eafm, nlpsol_calls):
+    ctl = OptimalController(eafm)
+    for s, t in zip(_states(afm, 5, seed=7), (0.0, 10.0, 20.0, 30.0, -10.0)):
+        ctl.solve(t, s)
+    assert len(nlpsol_calls) == 1 and ctl.n_builds == 1
+
+
+def test_ipopt_failure_never_leaves_the_ranges(afm, eafm):
+    ctl = OptimalController(eafm, ControllerSettings(max_iter=1))
+    for target in (3.0, 25.0):
+        r = ctl.solve(target)
+        assert not r.success and "fallback to seed" in r.status
+        _check_valid(r, afm, eafm, target)
+
+
+def test_warm_started_sequence(afm, eafm, opt):
+    res = opt.solve_sequence([0.0, 7.0, 14.0, 21.0, 28.0])
+    for r, t in zip(res, (0.0, 7.0, 14.0, 21.0, 28.0)):
+        assert r.success
+        _check_valid(r, afm, eafm, t)
+        assert r.objective <= opt.solve(t, r.state).objective * (1 + 1e-6)
+
+
+def test_mean_baseline_moves_less_than_optimal(afm, eafm, opt):
+    mean = EAFMMeanController(eafm)
+    for t in (4.0, 18.0):
+        a, b = mean.solve(t), opt.solve(t)
+        assert a.objective <= np.sum((afm.K @ b.u) ** 2) + 1e-9
+
+
+def test_bad_settings_and_state(eafm, opt):
+    with pytest.raises(ConfigError, match="r_e"):
+        ControllerSettings(r_e="variance")
+    with pytest.raises(ConfigError, match="state"):
+        opt.solve(1.0, np.zeros(3))
+
+
+def test_compare_noise_probability(afm, eafm, opt):
+    """P(g_a < g_b) from the joint posterior, recomputed here from eafm.g_joint and the normal
+    CDF written out with math.erf; complementary in a and b; the planted quiet well's pose is
+    credibly quieter than a pose outside it (their noise stds differ 10x: 0.02 vs 0.2 µm)."""
+    from microctl.control.controller import compare_noise
+
+    s = afm.zero_state()
+    quiet = opt.solve(20.0, s)
+    far = AFMController(afm).solve(20.0, s)
+    c = compare_noise(eafm, s, quiet.u, far.u)
+    mean, cov = eafm.g_joint(s, np.vstack([quiet.u, far.u]))
+    sd = math.sqrt(cov[0, 0] + cov[1, 1] - 2 * cov[0, 1])
+    p = 0.5 * (1 + math.erf(-(mean[0] - mean[1]) / sd / math.sqrt(2)))
+    assert c.prob_quieter == pytest.approx(p, rel=1e-9)
+    assert compare_noise(eafm, s, far.u, quiet.u).prob_quieter == pytest.approx(1 - p, abs=1e-12)
+    assert c.credible and c.prob_quieter > 0.99
