@@ -19,9 +19,11 @@ module builds, from an :class:`~microctl.models.afm.AnalyticForwardModel` and a
 - vectorised NumPy helpers for the controller's global seeding
   (:meth:`EAFM.mean_and_grad_u`, :meth:`EAFM.g_mean_np`).
 
-Graph design (measurements in ``docs/controller.md``): MX, not SX; the mean terms are
-``k^T alpha`` with ``k`` built from one dense (n x d) product; the variance terms are
-``k** - ||L^-1 k||^2`` with ``L^-1`` a constant lower-triangular (sparse) DM.
+The GP's quantities, in NumPy and as CasADi graphs alike, are those of the model's one
+posterior, :class:`~microctl.gp.posterior.Posterior` (graph design, measured in
+``docs/controller.md``: MX, not SX; the mean terms are ``k^T alpha`` with ``k`` built from
+one dense (n x d) product; the variance terms are ``k** - ||L^-1 k||^2`` with ``L^-1`` a
+constant lower-triangular (sparse) DM); this module adds the AFM and the stage binding.
 """
 
 from __future__ import annotations
