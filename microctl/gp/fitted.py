@@ -57,9 +57,11 @@ class VHGPRPrediction:
     y_var: np.ndarray
 
 
-def _stored(role: str, **kw: Any) -> Any:
-    """A dataclass field with its storage role in the model file (see :meth:`FittedVHGPR.stored`)."""
-    return field(metadata={"store": role}, **kw)
+def _stored(role: str, *, shape: tuple[str, ...] | None = None, log: bool = False, **kw: Any) -> Any:
+    """A dataclass field with its storage role in the model file (see :meth:`FittedVHGPR.stored`),
+    its shape in the dimensions ``n`` (training points), ``d`` (inputs), ``p`` and ``p+1``
+    (noise features) and whether it is a log-parameter (both checked at load)."""
+    return field(metadata={"store": role, "shape": shape, "log": log}, **kw)
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,34 +124,34 @@ class FittedVHGPR:
     (:mod:`microctl.gp.modelfile`) derives its arrays from them.
     """
 
-    x_mean: np.ndarray = _stored("array")
-    x_scale: np.ndarray = _stored("array")
+    x_mean: np.ndarray = _stored("array", shape=("d",))
+    x_scale: np.ndarray = _stored("array", shape=("d",))
     y_mean: float = _stored("float")
     y_scale: float = _stored("float")
     X: np.ndarray = _stored("array")
-    f_log_lengthscales: np.ndarray = _stored("array")
-    f_log_signal_var: float = _stored("float")
-    f_log_bias_var: float | None = _stored("optional_float")
-    g_log_lengthscales: np.ndarray = _stored("array")
-    g_log_signal_var: float = _stored("float")
-    g_log_bias_var: float | None = _stored("optional_float")
-    g_mu0: float = _stored("float")
-    log_lambda: np.ndarray = _stored("array")
-    f_alpha: np.ndarray = _stored("array")
-    f_chol: np.ndarray = _stored("array")
-    g_beta: np.ndarray = _stored("array")
-    g_chol: np.ndarray = _stored("array")
+    f_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    f_log_signal_var: float = _stored("float", log=True)
+    f_log_bias_var: float | None = _stored("optional_float", log=True)
+    g_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    g_log_signal_var: float = _stored("float", log=True)
+    g_log_bias_var: float | None = _stored("optional_float", log=True)
+    g_mu0: float = _stored("float", log=True)
+    log_lambda: np.ndarray = _stored("array", shape=("n",), log=True)
+    f_alpha: np.ndarray = _stored("array", shape=("n",))
+    f_chol: np.ndarray = _stored("array", shape=("n", "n"))
+    g_beta: np.ndarray = _stored("array", shape=("n",))
+    g_chol: np.ndarray = _stored("array", shape=("n", "n"))
     bound: float = _stored("float")
     training_hash: str = _stored("meta")
     geometry_hash: str | None = _stored("meta", default=None)
     x_names: tuple[str, ...] = _stored("meta", default=())
     y_name: str = _stored("meta", default="")
     info: dict = _stored("meta", default_factory=dict)
-    f_log_linear_vars: np.ndarray | None = _stored("optional_array", default=None)
-    g_feature_matrix: np.ndarray | None = _stored("optional_array", default=None)
-    g_feature_offset: np.ndarray | None = _stored("optional_array", default=None)
-    g_log_feature_coef: np.ndarray | None = _stored("optional_array", default=None)
-    g_mean_coef_cov: np.ndarray | None = _stored("optional_array", default=None)
+    f_log_linear_vars: np.ndarray | None = _stored("optional_array", shape=("d",), log=True, default=None)
+    g_feature_matrix: np.ndarray | None = _stored("optional_array", shape=("p", "d"), default=None)
+    g_feature_offset: np.ndarray | None = _stored("optional_array", shape=("p",), default=None)
+    g_log_feature_coef: np.ndarray | None = _stored("optional_array", shape=("p",), log=True, default=None)
+    g_mean_coef_cov: np.ndarray | None = _stored("optional_array", shape=("p+1", "p+1"), default=None)
     g_feature_names: tuple[str, ...] = _stored("meta", default=())
     noise_model_name: str | None = _stored("meta", default=None)
 
@@ -158,6 +160,16 @@ class FittedVHGPR:
         """Names of the fields with storage role ``role`` (``array``, ``float``, ``optional_float``,
         ``optional_array``, ``meta``), in declaration order: the model file's layout."""
         return tuple(f.name for f in fields(cls) if f.metadata.get("store") == role)
+
+    @classmethod
+    def shapes(cls) -> dict[str, tuple[str, ...]]:
+        """The stored arrays' shapes in the dimensions ``n``, ``d``, ``p``, ``p+1`` (see :func:`_stored`)."""
+        return {f.name: f.metadata["shape"] for f in fields(cls) if f.metadata.get("shape") is not None}
+
+    @classmethod
+    def log_parameters(cls) -> tuple[str, ...]:
+        """The fields holding log-parameters (log variances, log lengthscales, mu0, log Lambda)."""
+        return tuple(f.name for f in fields(cls) if f.metadata.get("log"))
 
     @property
     def n_inputs(self) -> int:

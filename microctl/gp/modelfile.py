@@ -23,7 +23,7 @@ import numpy as np
 
 from microctl.errors import DataError
 from microctl.gp.arrays import freeze, jsonable
-from microctl.gp.noise_models import noise_model_class
+from microctl.gp.noise_models import FEATURE_ARRAYS, noise_model_class
 
 __all__ = ["FORMAT_VERSION", "READABLE_VERSIONS", "write_model", "read_model"]
 
@@ -118,7 +118,7 @@ def read_model(cls: type, path: str | Path) -> Any:
         kw = _fields_from(cls, data)
     except (TypeError, ValueError, KeyError) as exc:
         raise DataError(f"{path}: malformed model file: {exc}") from None
-    _check_shapes(path, kw)
+    _check_shapes(path, kw, cls.shapes())
     _check_noise_model(path, kw)
     for name in cls.stored("array") + cls.stored("optional_array"):
         if kw.get(name) is not None:
@@ -184,21 +184,17 @@ def _fields_from(cls: type, data: dict) -> dict[str, Any]:
     return kw
 
 
-def _check_shapes(path: Path, kw: dict) -> None:
-    """Every array of the shape n training points in d inputs (and p noise features) need."""
+def _check_shapes(path: Path, kw: dict, dims: dict[str, tuple[str, ...]]) -> None:
+    """Every array of the shape (``dims``: in n, d, p, p+1) n training points in d inputs and p
+    noise features need."""
     X = kw["X"]
     if X.ndim != 2 or X.shape[0] < 1:
         raise DataError(f"{path}: malformed model file: 'X' has shape {X.shape}")
     n, d = X.shape
-    shapes = {
-        "x_mean": (d,), "x_scale": (d,), "f_log_lengthscales": (d,), "g_log_lengthscales": (d,),
-        "log_lambda": (n,), "f_alpha": (n,), "g_beta": (n,), "f_chol": (n, n), "g_chol": (n, n),
-    }
     p = kw["g_feature_matrix"].shape[0] if kw.get("g_feature_matrix") is not None and kw["g_feature_matrix"].ndim == 2 else 0
-    optional_shapes = {"f_log_linear_vars": (d,), "g_feature_matrix": (p, d), "g_feature_offset": (p,),
-                       "g_log_feature_coef": (p,), "g_mean_coef_cov": (p + 1, p + 1)}
-    shapes.update({k: s for k, s in optional_shapes.items() if kw.get(k) is not None})
-    features = [k for k in ("g_feature_matrix", "g_feature_offset", "g_log_feature_coef") if kw.get(k) is not None]
+    size = {"n": n, "d": d, "p": p, "p+1": p + 1}
+    shapes = {k: tuple(size[s] for s in spec) for k, spec in dims.items() if kw.get(k) is not None}
+    features = [k for k in FEATURE_ARRAYS if kw.get(k) is not None]
     if features and len(features) != 3:
         raise DataError(f"{path}: malformed model file: g's prior-mean features need g_feature_matrix, "
                         f"g_feature_offset and g_log_feature_coef together (found {', '.join(features)})")
@@ -216,7 +212,7 @@ def _check_noise_model(path: Path, kw: dict) -> None:
         noise = noise_model_class(name)
     except KeyError as exc:
         raise DataError(f"{path}: {exc.args[0]} (a model file of another microctl?)") from None
-    have = tuple(k for k in ("g_feature_matrix", "g_feature_offset", "g_log_feature_coef") if kw.get(k) is not None)
+    have = tuple(k for k in FEATURE_ARRAYS if kw.get(k) is not None)
     if set(have) != set(noise.stored_arrays):
         raise DataError(f"{path}: malformed model file: noise model {name!r} stores "
                         f"{', '.join(noise.stored_arrays) or 'no feature arrays'}, the file has "
@@ -330,10 +326,7 @@ def _check_ranges(kw: dict, cls: type, fail: Any) -> None:
         raise fail(f"'y_scale' = {kw['y_scale']:g} must be > 0 (the standard deviation of the training outputs)")
     if not np.all(kw["x_scale"] > 0):
         raise fail(f"'x_scale' = {kw['x_scale'].tolist()} must be > 0 in every column")
-    logs = {n: np.atleast_1d(kw[n]) for n in ("f_log_lengthscales", "g_log_lengthscales", "log_lambda")}
-    logs.update({n: np.atleast_1d(kw[n]) for n in ("f_log_signal_var", "g_log_signal_var", "f_log_bias_var",
-                                                   "g_log_bias_var", "g_mu0", "f_log_linear_vars",
-                                                   "g_log_feature_coef") if kw.get(n) is not None})
+    logs = {n: np.atleast_1d(kw[n]) for n in cls.log_parameters() if kw.get(n) is not None}
     for name, v in logs.items():
         if v.size and np.max(np.abs(v)) > _MAX_LOG_PARAMETER:
             raise fail(f"log-parameter '{name}' = {float(v[np.argmax(np.abs(v))]):g} is beyond "

@@ -25,8 +25,8 @@ import numpy as np
 
 from microctl.gp.noise_prior import LogVarianceMean, square
 
-__all__ = ["NoiseModel", "PhysicalNoise", "ConstantNoise", "register_noise_model", "noise_model_class",
-           "noise_model_names"]
+__all__ = ["FEATURE_ARRAYS", "NoiseModel", "PhysicalNoise", "ConstantNoise", "register_noise_model",
+           "noise_model_class", "noise_model_names"]
 
 #: The feature arrays of a model file (fields of :class:`~microctl.gp.fitted.FittedVHGPR`).
 FEATURE_ARRAYS = ("g_feature_matrix", "g_feature_offset", "g_log_feature_coef")
