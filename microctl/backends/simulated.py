@@ -24,6 +24,8 @@ gauge through the serial dialect, reproduces the same data.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from microctl.backends.base import StageBackend
@@ -45,6 +47,45 @@ EXACT_MARGIN_SD = 6.0
 
 #: Poses per Monte Carlo batch (memory: batch x TRUTH_DRAWS equilibrium solves).
 _MC_BATCH = 64
+
+
+def enumerated_equilibrium(model, h: np.ndarray) -> np.ndarray:
+    """Contact equilibrium poses for ball heights h (m, n_c), by enumerating the contact sets.
+
+    The elastic energy is strictly convex (the flexure stiffness is positive), so its minimiser is
+    the one pose p_S = H_S^-1 (f_preload + k_c A_S^T h_S) of a contact set S whose balls in S are
+    compressed and whose others are not (the KKT conditions of the piecewise quadratic). With 2^n_c
+    sets of precomputed H_S^-1 this is a few matrix products per set: the Monte Carlo truth's
+    many solves cost little (the same answer as :func:`microctl.stage.physics.solve_equilibrium`,
+    which iterates; tested). Among sets consistent within round-off, the first in enumeration
+    order (larger sets first) is taken.
+
+    Returns
+    -------
+    ndarray, shape (m, n_p)
+    """
+    A, kc = model.A, model.k_c
+    n_c = A.shape[0]
+    h = np.atleast_2d(np.asarray(h, dtype=float))
+    p_out = np.full((h.shape[0], A.shape[1]), np.nan)
+    todo = np.arange(h.shape[0])
+    tol = 1e-9 * (1.0 + np.max(np.abs(h), axis=1))
+    for size in range(n_c, -1, -1):
+        for S in itertools.combinations(range(n_c), size):
+            mask = np.zeros(n_c, dtype=bool)
+            mask[list(S)] = True
+            AS = A[mask]
+            Hinv = np.linalg.inv(kc * AS.T @ AS + np.diag(model.k_h))
+            hs = h[todo]
+            p = (model.f_preload + kc * hs[:, mask] @ AS) @ Hinv.T
+            c = hs - p @ A.T
+            tl = tol[todo, None]
+            ok = np.all(np.where(mask, c >= -tl, c <= tl), axis=1)
+            p_out[todo[ok]] = p[ok]
+            todo = todo[~ok]
+            if todo.size == 0:
+                return p_out
+    return p_out
 
 
 class SimulatedStage(StageBackend):
@@ -209,7 +250,7 @@ class SimulatedStage(StageBackend):
             noise = (self.settings.driver_accuracy_um * z[None, :, 0, :]
                      + (self.model.friction_std_per_um * np.abs(dq[sl]))[:, None, :] * z[None, :, 1, :])
             qa = (q_act[sl][:, None, :] + noise).reshape(-1, n_q)
-            p, _ = self.truth.pose(qa)
+            p = enumerated_equilibrium(self.model, ball_heights(self.model, qa))
             r = self.truth.reading(p, t_read).reshape(-1, TRUTH_DRAWS)
             means[sl] = r.mean(axis=1)
             vars_[sl] = r.var(axis=1, ddof=1) + self.settings.gauge_noise_std_um**2

@@ -89,3 +89,20 @@ def test_quadratic_gauge_moments_are_exact():
     se = np.sqrt(var / TRUTH_DRAWS)
     assert np.all(np.abs(mc_mean - mean)[exact] <= 4 * se[exact])
     assert np.max(np.abs(np.sqrt(mc_var / var) - 1)[exact]) < 4 / np.sqrt(2 * TRUTH_DRAWS)
+
+
+@pytest.mark.parametrize("config", ["sim_paper.yaml", "sim_paper_scale.yaml"])
+def test_enumerated_equilibrium_equals_the_newton_solver(config):
+    """The Monte Carlo's contact-set enumeration and the simulator's semismooth Newton give the same
+    poses (to 1e-9 µm) on random ball heights, lift-offs included."""
+    from microctl.backends.simulated import enumerated_equilibrium
+    from microctl.stage.physics import ball_heights, solve_equilibrium
+
+    cfg = load_stage_config(ROOT / "configs/stage" / config)
+    with SimulatedStage(cfg, seed=0) as st:
+        q = np.random.default_rng(3).uniform(-5, 37, size=(500, cfg.stage.n_act))
+        h = ball_heights(st.model, q)
+        p_newton, active = solve_equilibrium(st.model, h)
+        p_enum = enumerated_equilibrium(st.model, h)
+    assert (~active).any()  # some balls lift off
+    np.testing.assert_allclose(p_enum, p_newton, atol=1e-9, rtol=0)
