@@ -78,7 +78,7 @@ def ball_load_map(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
 def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
     """Every candidate source of the module docstring for this stage (scale 1; see
     :meth:`ShapedFeatures.rescaled`)."""
-    n_q, n_p, n_s = afm.n_q, afm.n_p, afm.n_s
+    n_p, n_s = afm.n_p, afm.n_s
     d = n_s + n_p
     lo, hi = afm.stage.range_lo, afm.stage.range_hi
     f0, B = ball_load_map(afm)
