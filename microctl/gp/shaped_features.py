@@ -1,0 +1,176 @@
+"""Variance features of any smooth shape: ``phi_j(x) = shape_j(a_j . x + b_j)`` (a dictionary).
+
+The physical noise model (:mod:`microctl.gp.noise_prior`) writes the noise variance as a floor
+plus a sum of non-negative contributions, one per physical source,
+
+    V(x) = c_0 + sum_j c_j phi_j(x),     c_j >= 0,                                    (1)
+
+each source independent of the others, so their variances add. There the contributions are
+squares of linear maps (stick-slip whose std is proportional to an actuator's step). A piezo
+stage has other sources whose variance is some other function of one physical quantity that
+is itself linear in the inputs x = [s; u] (eq. 3): an actuator's step dq_i, where it ends
+q_i = K_i u (eq. 12), a ball's contact force (linear in u while every ball is loaded). This
+module represents each candidate as that linear quantity ``z_j = a_j . x + b_j`` and a shape:
+
+``sq``      z^2                                   (std proportional to |z|: stick-slip)
+``abs``     sqrt(z^2 + e^2) - e                   (variance proportional to |z|: creep)
+``sat``     z^2 / (z^2 + s^2)                     (saturating: stiction, settling)
+``up``      z^2 (1 + tanh(z / e)) / 2             (only when z > 0: one direction)
+``down``    z^2 (1 - tanh(z / e)) / 2             (only when z < 0)
+``bump``    exp(-(z - mu)^2 / (2 h^2))            (a rough patch of a stroke)
+``exp``     exp(z)                                (grows as z rises: a ball unloading)
+
+Every shape is smooth (CasADi differentiates it exactly) and non-negative. Each feature is
+divided by a fixed ``scale`` (its mean over the training inputs) so the coefficients c_j are
+comparable: ``phi_j = shape_j(z_j) / scale_j``.
+
+Both forms are here side by side: NumPy (:meth:`ShapedFeatures.values`) and CasADi
+(:meth:`ShapedFeatures.casadi`), on inputs in their original units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from microctl.errors import ConfigError
+
+__all__ = ["SHAPES", "ShapedFeatures"]
+
+#: Shape name -> number of parameters it reads from its row of ``params``.
+SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0}
+
+
+def _shape_np(kind: str, z: np.ndarray, p: np.ndarray) -> np.ndarray:
+    if kind == "sq":
+        return z * z
+    if kind == "abs":
+        return np.sqrt(z * z + p[0] ** 2) - p[0]
+    if kind == "sat":
+        return z * z / (z * z + p[0] ** 2)
+    if kind == "up":
+        return z * z * 0.5 * (1.0 + np.tanh(z / p[0]))
+    if kind == "down":
+        return z * z * 0.5 * (1.0 - np.tanh(z / p[0]))
+    if kind == "bump":
+        return np.exp(-((z - p[0]) ** 2) / (2.0 * p[1] ** 2))
+    if kind == "exp":
+        return np.exp(np.minimum(z, 50.0))
+    raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
+
+
+def _shape_ca(kind: str, z: ca.MX, p: np.ndarray) -> ca.MX:
+    if kind == "sq":
+        return z * z
+    if kind == "abs":
+        return ca.sqrt(z * z + float(p[0]) ** 2) - float(p[0])
+    if kind == "sat":
+        return z * z / (z * z + float(p[0]) ** 2)
+    if kind == "up":
+        return z * z * 0.5 * (1.0 + ca.tanh(z / float(p[0])))
+    if kind == "down":
+        return z * z * 0.5 * (1.0 - ca.tanh(z / float(p[0])))
+    if kind == "bump":
+        return ca.exp(-((z - float(p[0])) ** 2) / (2.0 * float(p[1]) ** 2))
+    if kind == "exp":
+        return ca.exp(ca.fmin(z, 50.0))
+    raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
+
+
+@dataclass(frozen=True, eq=False)
+class ShapedFeatures:
+    """p variance features ``phi_j(x) = shape_j(a_j . x + b_j) / scale_j`` (module docstring).
+
+    Attributes
+    ----------
+    matrix : ndarray, shape (p, d)
+        Row j is a_j (x in original units).
+    offset : ndarray, shape (p,)
+        b_j.
+    shapes : tuple of str
+        One of :data:`SHAPES` per feature.
+    params : ndarray, shape (p, 2)
+        Shape parameters (unused entries 0).
+    scale : ndarray, shape (p,)
+        Positive divisor of each feature (its mean over the training inputs).
+    names : tuple of str
+        One name per feature (``"dq4:sq"``, ``"q2:bump@12"``, ...).
+    """
+
+    matrix: np.ndarray
+    offset: np.ndarray
+    shapes: tuple[str, ...]
+    params: np.ndarray
+    scale: np.ndarray
+    names: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        A = np.asarray(self.matrix, dtype=float)
+        p = A.shape[0] if A.ndim == 2 else -1
+        if (p < 0 or np.shape(self.offset) != (p,) or len(self.shapes) != p or np.shape(self.params) != (p, 2)
+                or np.shape(self.scale) != (p,) or len(self.names) != p):
+            raise ConfigError(f"shaped noise features: matrix {A.shape}, offset {np.shape(self.offset)}, "
+                              f"{len(self.shapes)} shapes, params {np.shape(self.params)}, scale "
+                              f"{np.shape(self.scale)} and {len(self.names)} names do not match")
+        bad = [s for s in self.shapes if s not in SHAPES]
+        if bad:
+            raise ConfigError(f"shaped noise features: unknown shape(s) {bad}; valid: {sorted(SHAPES)}")
+        for arr, what in ((A, "matrix"), (self.offset, "offset"), (self.params, "params"), (self.scale, "scale")):
+            if not np.all(np.isfinite(np.asarray(arr, dtype=float))):
+                raise ConfigError(f"shaped noise features: non-finite {what}")
+        if np.any(np.asarray(self.scale) <= 0):
+            raise ConfigError("shaped noise features: every scale must be positive")
+
+    @property
+    def p(self) -> int:
+        """Number of features."""
+        return int(np.asarray(self.matrix).shape[0])
+
+    def linear(self, X: np.ndarray) -> np.ndarray:
+        """z = X a^T + b, shape (m, p)."""
+        return np.asarray(X, dtype=float) @ np.asarray(self.matrix, dtype=float).T + np.asarray(self.offset)
+
+    def values(self, X: np.ndarray) -> np.ndarray:
+        """phi(x) at the rows of X (original units), shape (m, p)."""
+        Z = self.linear(X)
+        out = np.empty_like(Z)
+        for j, kind in enumerate(self.shapes):
+            out[:, j] = _shape_np(kind, Z[:, j], np.asarray(self.params[j])) / self.scale[j]
+        return out
+
+    def casadi(self, x: ca.MX) -> ca.MX:
+        """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""
+        z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), x) + ca.DM(np.asarray(self.offset, dtype=float))
+        return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j])) / float(self.scale[j])
+                            for j, kind in enumerate(self.shapes)])
+
+    def subset(self, idx) -> "ShapedFeatures":
+        """The features ``idx`` (a sequence of indices), in that order."""
+        idx = list(idx)
+        return ShapedFeatures(np.asarray(self.matrix)[idx].reshape(len(idx), -1), np.asarray(self.offset)[idx],
+                              tuple(self.shapes[i] for i in idx), np.asarray(self.params)[idx].reshape(len(idx), 2),
+                              np.asarray(self.scale)[idx], tuple(self.names[i] for i in idx))
+
+    def rescaled(self, X: np.ndarray) -> "ShapedFeatures":
+        """The same features with ``scale`` set to each feature's mean over the rows of X
+        (floored at 1e-12 of its largest value, and at 1e-300)."""
+        raw = ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.ones(self.p), self.names)
+        V = raw.values(X)
+        mean = V.mean(axis=0)
+        floor = np.maximum(1e-12 * V.max(axis=0, initial=0.0), 1e-300)
+        return ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.maximum(mean, floor), self.names)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The fields as plain arrays (for a model file; :meth:`from_arrays` reads them back)."""
+        return {"matrix": np.asarray(self.matrix, dtype=float), "offset": np.asarray(self.offset, dtype=float),
+                "shapes": np.asarray(self.shapes, dtype=str), "params": np.asarray(self.params, dtype=float),
+                "scale": np.asarray(self.scale, dtype=float), "names": np.asarray(self.names, dtype=str)}
+
+    @classmethod
+    def from_arrays(cls, a: dict) -> "ShapedFeatures":
+        p = int(np.asarray(a["matrix"]).shape[0])
+        return cls(np.asarray(a["matrix"], dtype=float).reshape(p, -1), np.asarray(a["offset"], dtype=float),
+                   tuple(str(s) for s in a["shapes"]), np.asarray(a["params"], dtype=float).reshape(p, 2),
+                   np.asarray(a["scale"], dtype=float), tuple(str(s) for s in a["names"]))

@@ -1,0 +1,285 @@
+"""The dictionary of physical noise sources a piezo stage may have, and their selection by the data.
+
+The noise variance of a move is modelled as a floor plus independent sources (their variances
+add; :mod:`microctl.gp.shaped_features` eq. 1). Which sources a stage has is not assumed: the
+candidates below are computed from the stage model, and the data select among them.
+
+Candidates, per actuator i (x = [s; u], s = [t_prev; q_prev], eq. 3; q_i = K_i u, eq. 12;
+dq_i = K_i u - q_i,prev):
+
+``dq<i>:sq``       dq_i^2                      stick-slip whose std grows with the step
+``dq<i>:abs``      |dq_i| (smoothed)           creep / settling whose variance grows with the step
+``dq<i>:sat``      dq_i^2 / (dq_i^2 + s^2)     stiction that saturates after a few µm (s = 2 µm)
+``dq<i>:up``       dq_i^2 on extending moves   direction-dependent slip (one sign of the step)
+``dq<i>:down``     dq_i^2 on retracting moves
+``q<i>:bump@c``    a Gaussian bump in q_i      a rough patch of the stroke centred at c (5 centres
+                                               over the range, width range/10)
+``q<i>:ext``       ((q_i - lo) / range)^2      scatter growing with the extension (drive voltage)
+``f<i>:light``     exp(-F_i(u) / F_s)          scatter growing as ball i's contact force F_i
+                                               falls (F_i linear in u while all balls are loaded,
+                                               from the contact model; F_s = mean preload per
+                                               ball / 4)
+
+Selection (:func:`select_features`) is forward and evidence-based with a multiple-testing
+discipline: on the residual of the mean correction, r ~ N(0, c_0 + sum_S c_j phi_j(x)) with
+c >= 0 is fitted by maximum likelihood; the candidate that raises the maximised log-likelihood
+most is added while its likelihood-ratio statistic is significant at family-wise level
+``alpha`` over the candidates still in play (one-sided chi-square, Bonferroni: the
+coefficient's null value 0 is on the boundary). On a stage whose scatter is the gauge alone,
+nothing is selected with probability >= 1 - alpha.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize, stats
+
+from microctl.gp.shaped_features import ShapedFeatures
+from microctl.models.afm import AnalyticForwardModel
+from microctl.stage.causes import Effects
+from microctl.stage.physics import ball_heights, contact_model
+
+__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection"]
+
+#: Stroke-patch centres per actuator range, and width as a fraction of the range.
+N_BUMPS, BUMP_WIDTH = 5, 0.1
+#: Smoothing of |dq| and of the direction switch, µm; stiction saturation step, µm.
+STEP_EPS_UM, SAT_UM = 0.2, 2.0
+
+
+def ball_load_map(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
+    """Contact forces of the CAD stage, linear in the pose while every ball is loaded.
+
+    With every ball in contact the elastic equilibrium is the minimiser of a quadratic, so the
+    pose and each ball's force ``F_i = k_c (h_i - a_i . p)`` are affine in the commands h = (n.d) q,
+    q = K u (eq. 12).
+
+    Returns
+    -------
+    f0 : ndarray, shape (n_q,)
+        Forces at u = 0, N.
+    B : ndarray, shape (n_q, n_p)
+        dF/du, N per unit pose.
+    """
+    model = contact_model(afm.stage, Effects())  # the CAD stage: no corrections, no defects
+    A, kc = model.A, model.k_c
+    H = kc * A.T @ A + np.diag(model.k_h)
+    n_p = afm.n_p
+    U = np.vstack([np.zeros(n_p), np.eye(n_p)])
+    h = ball_heights(model, U @ afm.K.T)
+    P = np.linalg.solve(H, (model.f_preload[:, None] + kc * A.T @ h.T)).T
+    F = kc * (h - P @ A.T)
+    return F[0], (F[1:] - F[0]).T
+
+
+def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
+    """Every candidate source of the module docstring for this stage (scale 1; see
+    :meth:`ShapedFeatures.rescaled`)."""
+    n_p, n_s = afm.n_p, afm.n_s
+    d = n_s + n_p
+    lo, hi = afm.stage.range_lo, afm.stage.range_hi
+    f0, B = ball_load_map(afm)
+    f_s = max(float(np.mean(np.abs(f0))) / 4.0, 1e-9)
+    rows, offs, shapes, params, names = [], [], [], [], []
+
+    def add(a, b, shape, p, name):
+        rows.append(a)
+        offs.append(b)
+        shapes.append(shape)
+        params.append(p)
+        names.append(name)
+
+    for i, nm in enumerate(afm.actuator_names):
+        step = np.zeros(d)
+        step[1 + i] = -1.0
+        step[n_s:] = afm.K[i]
+        end = np.zeros(d)
+        end[n_s:] = afm.K[i]
+        add(step, 0.0, "sq", (0.0, 0.0), f"d{nm}:sq")
+        add(step, 0.0, "abs", (STEP_EPS_UM, 0.0), f"d{nm}:abs")
+        add(step, 0.0, "sat", (SAT_UM, 0.0), f"d{nm}:sat")
+        add(step, 0.0, "up", (STEP_EPS_UM, 0.0), f"d{nm}:up")
+        add(step, 0.0, "down", (STEP_EPS_UM, 0.0), f"d{nm}:down")
+        span = max(float(hi[i] - lo[i]), 1e-9)
+        for k in range(N_BUMPS):
+            c = float(lo[i] + (k + 0.5) * span / N_BUMPS)
+            add(end, 0.0, "bump", (c, BUMP_WIDTH * span), f"{nm}:bump@{c:g}")
+        add(end / span, -float(lo[i]) / span, "sq", (0.0, 0.0), f"{nm}:ext")
+        load = np.zeros(d)
+        load[n_s:] = -B[i] / f_s
+        add(load, -float(f0[i]) / f_s, "exp", (0.0, 0.0), f"f{i + 1}:light")
+    return ShapedFeatures(np.array(rows), np.array(offs), tuple(shapes), np.array(params), np.ones(len(rows)),
+                          tuple(names))
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What :func:`select_features` chose and why.
+
+    Attributes
+    ----------
+    indices : tuple of int
+        Selected candidates, in the order they entered.
+    names : tuple of str
+    gains : tuple of float
+        Log-likelihood gain of each when it entered (nats).
+    thresholds : tuple of float
+        The gain each needed (half the chi-square quantile at its level).
+    loglik : float
+        Maximised log-likelihood of the final set.
+    tilt : ndarray, shape (k,), or None
+        The direction of the tilt source, when it entered (its name is ``"tilt"``, last).
+    """
+
+    indices: tuple[int, ...]
+    names: tuple[str, ...]
+    gains: tuple[float, ...]
+    thresholds: tuple[float, ...]
+    loglik: float
+    tilt: np.ndarray | None = None
+
+
+def _fit_variance(r2: np.ndarray, Phi: np.ndarray) -> tuple[float, np.ndarray]:
+    """Max over c >= 0 of sum -1/2 (log v + r^2 / v), v = c_0 + Phi c (c_0 > 0). Returns the
+    log-likelihood (without the 2 pi constant) and c = (c_0, c_1..)."""
+    n, p = Phi.shape
+    D = np.hstack([np.ones((n, 1)), Phi])
+    floor = 1e-6 * float(np.mean(r2)) + 1e-300
+
+    def f(c):
+        v = D @ c
+        ll = -0.5 * np.sum(np.log(v) + r2 / v)
+        g = -0.5 * D.T @ (1.0 / v - r2 / (v * v))
+        return -ll, -g
+
+    c0 = np.concatenate([[float(np.mean(r2))], np.full(p, 1e-3 * float(np.mean(r2)))])
+    res = optimize.minimize(f, c0, jac=True, method="L-BFGS-B",
+                            bounds=[(floor, None)] + [(0.0, None)] * p, options={"maxiter": 500})
+    return -float(res.fun), res.x
+
+
+def _fit_tilt(r2: np.ndarray, Phi: np.ndarray, Z: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Max log-likelihood of v = c_0 + Phi c + c_t exp(w . z) over c >= 0 and a free direction w:
+    a source whose variance grows exponentially along a direction of the pose that the data choose
+    (a ball unloading where the actual geometry, unlike the CAD one, tilts its load). Started from
+    the least-squares slope of log r^2 on z. Returns (log-likelihood, c = (c_0, c, c_t), w)."""
+    n, p = Phi.shape
+    k = Z.shape[1]
+    D = np.hstack([np.ones((n, 1)), Phi])
+    Zc = np.hstack([np.ones((n, 1)), Z])
+    w0 = np.linalg.lstsq(Zc, np.log(r2 + 1e-12 * np.mean(r2)), rcond=None)[0][1:]
+    floor = 1e-6 * float(np.mean(r2)) + 1e-300
+    scale = float(np.mean(r2))
+
+    def f(th):
+        c, ct, w = th[: p + 1], th[p + 1], th[p + 2:]
+        e = np.exp(np.clip(Z @ w, -50, 50))
+        v = D @ c + ct * e
+        a = 1.0 / v - r2 / (v * v)
+        ll = -0.5 * np.sum(np.log(v) + r2 / v)
+        g = -0.5 * np.concatenate([D.T @ a, [e @ a], Z.T @ (a * ct * e)])
+        return -ll / n, -g / n
+
+    best = (-np.inf, None, None)
+    for w_init in (w0, 0.5 * w0):
+        th0 = np.concatenate([[0.5 * scale], np.full(p, 1e-3 * scale), [0.5 * scale / max(np.mean(np.exp(Z @ w_init)), 1e-12)],
+                              w_init])
+        res = optimize.minimize(f, th0, jac=True, method="L-BFGS-B",
+                                bounds=[(floor, None)] + [(0.0, None)] * (p + 1) + [(-20.0, 20.0)] * k,
+                                options={"maxiter": 500})
+        ll = -float(res.fun) * n
+        if ll > best[0]:
+            best = (ll, res.x[: p + 2], res.x[p + 2:])
+    return best
+
+
+def _score(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """Score statistic of each candidate column of Phi (n, P) for entering v with c_j = 0 (one-sided:
+    0 where the score is negative), from the Fisher information of the Gaussian variance model."""
+    u = 0.5 * Phi.T @ ((r2 - v) / (v * v))
+    info = 0.5 * (Phi * Phi).T @ (1.0 / (v * v))
+    return np.where(u > 0, u * u / np.maximum(info, 1e-300), 0.0)
+
+
+def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt_inputs: np.ndarray | None = None,
+                    alpha: float = 0.05, max_features: int = 6, refits: int = 4) -> Selection:
+    """Forward selection of variance features (module docstring).
+
+    At each step the candidates are ranked by their score statistic at the current fit (cheap,
+    all at once); the ``refits`` best are fitted by maximum likelihood. With ``tilt_inputs`` one
+    more candidate is a source growing exponentially along a direction of those inputs that the
+    fit chooses (:func:`_fit_tilt`; k + 1 parameters). The candidate with the smallest adjusted
+    p-value enters if that is below ``alpha``: a fixed feature's likelihood-ratio statistic is
+    referred to the boundary chi-square (chi2_0 + chi2_1)/2, Bonferroni over the candidates in
+    play; the tilt's to chi2 with k + 1 degrees of freedom. An entry also needs the BIC's gain
+    (half log n per parameter).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+        Residual of the mean correction at the training inputs.
+    candidates : ndarray, shape (n, P)
+        Candidate features at the training inputs (non-negative).
+    names : sequence of str, length P
+    tilt_inputs : ndarray, shape (n, k), optional
+        Standardised inputs the tilt may grow along (the pose).
+    alpha : float
+        Family-wise level of each entry step.
+    max_features : int
+    refits : int
+        Candidates refitted exactly per step.
+
+    Returns
+    -------
+    Selection
+    """
+    r2 = np.asarray(residual, dtype=float) ** 2
+    Phi = np.asarray(candidates, dtype=float)
+    n, P = Phi.shape
+    chosen: list[int] = []
+    gains: list[float] = []
+    thresholds: list[float] = []
+    tilt = None
+    ll, c = _fit_variance(r2, Phi[:, :0])
+    while len(chosen) + (tilt is not None) < min(max_features, P):
+        rest = np.array([j for j in range(P) if j not in chosen])
+        m = len(rest) + (tilt_inputs is not None and tilt is None)
+        v = c[0] + Phi[:, chosen] @ c[1: 1 + len(chosen)]
+        if tilt is not None:
+            v = v + c[-1] * np.exp(np.clip(tilt_inputs @ tilt, -50, 50))
+        order = rest[np.argsort(-_score(r2, v, Phi[:, rest]))][:refits]
+        options = []  # (adjusted p, gain, needed gain, what, c, w)
+        for j in order:
+            lj, cj = _fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
+            g = lj - ll
+            options.append((0.5 * float(stats.chi2.sf(2 * g, 1)) * m if g > 0 else 1.0, g, 0.5 * math.log(n),
+                            int(j), cj, tilt))
+        if tilt_inputs is not None and tilt is None:
+            lt, ct, w = _fit_tilt(r2, Phi[:, chosen], tilt_inputs)
+            g = lt - ll
+            k = tilt_inputs.shape[1]
+            options.append((float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g,
+                            0.5 * (k + 1) * math.log(n), "tilt", ct, w))
+        best = min(options, key=lambda o: o[0]) if options else None
+        if best is None or best[0] >= alpha or best[1] < best[2]:
+            break
+        if best[3] == "tilt":
+            tilt = best[5]
+        else:
+            chosen.append(best[3])
+        gains.append(best[1])
+        thresholds.append(best[2])
+        ll, c = ll + best[1], best[4]
+    names_out = tuple(names[j] for j in chosen) + (("tilt",) if tilt is not None else ())
+    return Selection(tuple(chosen), names_out, tuple(gains), tuple(thresholds), ll,
+                     None if tilt is None else np.asarray(tilt, dtype=float))
+
+
+def _fit_variance_with(r2, Phi, Z, w):
+    """:func:`_fit_variance` with, when ``w`` is given, the tilt exp(Z w) as one more fixed feature."""
+    if w is None:
+        return _fit_variance(r2, Phi)
+    return _fit_variance(r2, np.hstack([Phi, np.exp(np.clip(Z @ w, -50, 50))[:, None]]))

@@ -1,0 +1,128 @@
+"""The noise dictionary: candidate features from the stage model, their selection by the data, and the
+shaped features' NumPy and CasADi forms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from microctl.gp.shaped_features import SHAPES, ShapedFeatures
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.noise_dictionary import ball_load_map, candidate_features, select_features
+from microctl.stage.causes import Effects
+from microctl.stage.config import load_stage_config
+from microctl.stage.physics import ball_heights, contact_model, solve_equilibrium
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def afm():
+    return AnalyticForwardModel(load_stage_config(ROOT / "configs/stage/sim_paper.yaml").stage)
+
+
+def test_shaped_features_casadi_equals_numpy_at_random_points():
+    rng = np.random.default_rng(0)
+    kinds = tuple(SHAPES)
+    p, d = len(kinds), 5
+    params = np.column_stack([rng.uniform(0.5, 2, p), rng.uniform(0.5, 2, p)])
+    f = ShapedFeatures(rng.normal(size=(p, d)), rng.normal(size=p), kinds, params, rng.uniform(0.5, 2, p),
+                       tuple(f"f{k}" for k in range(p)))
+    x = ca.MX.sym("x", d)
+    fun = ca.Function("phi", [x], [f.casadi(x)])
+    X = rng.normal(size=(20, d))
+    np.testing.assert_allclose(np.array(fun.map(20)(X.T)).T, f.values(X), rtol=1e-12, atol=1e-12)
+    assert np.all(f.values(X) >= 0)
+    back = ShapedFeatures.from_arrays(f.to_arrays())
+    np.testing.assert_array_equal(back.values(X), f.values(X))
+
+
+def test_ball_load_map_matches_the_contact_physics(afm):
+    """F(u) = f0 + B u agrees with the forces of the contact equilibrium solved by the physics at
+    random poses (all balls loaded on sim_paper), to 1e-9 N."""
+    f0, B = ball_load_map(afm)
+    model = contact_model(afm.stage, Effects())
+    U = afm.workspace.sample(30, np.random.default_rng(1))
+    h = ball_heights(model, U @ afm.K.T)
+    p, active = solve_equilibrium(model, h)
+    assert active.all()
+    F = model.k_c * (h - p @ model.A.T)
+    np.testing.assert_allclose(f0 + U @ B.T, F, atol=1e-9)
+    assert np.allclose(f0.sum(), afm.stage.physics.preload_n, rtol=1e-3)
+
+
+def test_candidates_cover_each_actuator_and_kind(afm):
+    c = candidate_features(afm)
+    for nm in afm.actuator_names:
+        assert {f"d{nm}:{k}" for k in ("sq", "abs", "sat", "up", "down")} <= set(c.names)
+        assert f"{nm}:ext" in c.names and sum(n.startswith(f"{nm}:bump@") for n in c.names) == 5
+    assert {f"f{i}:light" for i in range(1, afm.n_q + 1)} <= set(c.names)
+
+
+def _inputs(afm, n, rng):
+    """Random [t_prev, q_prev, u] rows: a random pose, and a previous pose partway towards another
+    (step lengths spread from 0 to the workspace's size, as a covering design's hold moves give)."""
+    U0, U = afm.workspace.sample(n, rng), afm.workspace.sample(n, rng)
+    frac = rng.uniform(0, 1, (n, 1)) ** 2
+    Up = U + frac * (U0 - U)  # convex combination: inside the workspace
+    return np.hstack([np.zeros((n, 1)), Up @ afm.K.T, U])
+
+
+@pytest.mark.parametrize("planted", ["dq2:sq", "q3:bump@16", "dq1:sat"])
+def test_a_planted_source_is_selected_first(afm, planted):
+    """Residuals whose variance is a floor plus one candidate source (written here from the stage's
+    own numbers, not through the dictionary) select that source first (300 moves, seed fixed)."""
+    rng = np.random.default_rng(7)
+    X = _inputs(afm, 300, rng)
+    n_s = afm.n_s
+    q, qp = X[:, n_s:] @ afm.K.T, X[:, 1:n_s]
+    if planted == "dq2:sq":
+        v = 0.05**2 + (0.05 * (q[:, 1] - qp[:, 1])) ** 2
+    elif planted == "q3:bump@16":
+        v = 0.05**2 + 0.3**2 * np.exp(-((q[:, 2] - 16.0) ** 2) / (2 * 3.2**2))
+    elif planted == "dq1:sat":
+        dq = q[:, 0] - qp[:, 0]
+        v = 0.05**2 + 0.2**2 * dq**2 / (dq**2 + 4.0)
+    r = np.sqrt(v) * rng.standard_normal(300)
+    cands = candidate_features(afm).rescaled(X)
+    sel = select_features(r, cands.values(X), cands.names)
+    # the source's physical quantity (the actuator's step, its stroke, the ball's load) is found;
+    # among shapes of one step, a saturating scatter over steps mostly beyond its 2 µm knee is
+    # nearly as well described by |dq| (both are accepted: the shape is a detail, the source is not)
+    want = planted.split(":")[0] if planted.startswith("d") else planted
+    assert sel.names and sel.names[0].startswith(want), sel
+
+
+def test_clean_residuals_select_nothing_on_most_seeds(afm):
+    """Homoscedastic residuals: at family-wise level 0.05, nothing is selected on >= 18 of 20 seeds
+    (the binomial 95 % upper bound on false selections at 5 % is 2.7 of 20)."""
+    hits = 0
+    for seed in range(20):
+        rng = np.random.default_rng(100 + seed)
+        X = _inputs(afm, 200, rng)
+        cands = candidate_features(afm).rescaled(X)
+        U = X[:, afm.n_s:]
+        sel = select_features(0.05 * rng.standard_normal(200), cands.values(X), cands.names,
+                              tilt_inputs=(U - U.mean(axis=0)) / U.std(axis=0))
+        hits += bool(sel.names)
+    assert hits <= 2
+
+
+def test_a_load_tilt_the_cad_model_cannot_see_is_found_along_its_direction(afm):
+    """A ball that unloads along a direction of the pose set by the actual (not the CAD) geometry:
+    variance floor + 0.2^2 exp(2 w.z) with z the standardised pose and w a unit direction. The
+    dictionary's CAD load features barely vary on this stage (preload shared evenly); the tilt
+    candidate finds it, along w (cosine > 0.9)."""
+    rng = np.random.default_rng(11)
+    X = _inputs(afm, 300, rng)
+    U = X[:, afm.n_s:]
+    Z = (U - U.mean(axis=0)) / U.std(axis=0)
+    w = np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])
+    r = np.sqrt(0.05**2 + 0.2**2 * np.exp(2.0 * Z @ w)) * rng.standard_normal(300)
+    cands = candidate_features(afm).rescaled(X)
+    sel = select_features(r, cands.values(X), cands.names, tilt_inputs=Z)
+    assert sel.names[0] == "tilt", sel
+    assert sel.tilt @ w / np.linalg.norm(sel.tilt) > 0.9
