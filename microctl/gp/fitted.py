@@ -115,6 +115,9 @@ class FittedVHGPR:
         Laplace covariance of (c_0, .., c_p), propagated into g's posterior variance.
     g_feature_names : tuple of str
         Names of the features (``dq1``, ...).
+    g_feature_shapes, g_feature_params : tuple
+        The shape of each feature and its two parameters (``dictionary`` noise model,
+        :mod:`microctl.gp.shaped_features`); empty for the others.
     noise_model_name : str or None
         The noise model (:mod:`microctl.gp.noise_models`) that built g's prior mean; None (a
         model built in memory, or a file of format 1 or 2 written before the name was stored):
@@ -154,6 +157,8 @@ class FittedVHGPR:
     g_mean_coef_cov: np.ndarray | None = _stored("optional_array", shape=("p+1", "p+1"), default=None)
     g_feature_names: tuple[str, ...] = _stored("meta", default=())
     noise_model_name: str | None = _stored("meta", default=None)
+    g_feature_shapes: tuple[str, ...] = _stored("meta", default=())
+    g_feature_params: tuple = _stored("meta", default=())
 
     @classmethod
     def stored(cls, role: str) -> tuple[str, ...]:

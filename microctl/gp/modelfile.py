@@ -55,7 +55,7 @@ def write_model(model: Any, path: str | Path) -> None:
         v = getattr(model, name)
         arrays[name] = np.array([] if v is None else [float(v)], dtype=np.float64)
     meta = {name: _META_WRITE.get(name, _same)(getattr(model, name)) for name in cls.stored("meta")
-            if name != "noise_model_name"}
+            if name != "noise_model_name" and not (name in _WRITTEN_WHEN_SET and not getattr(model, name))}
     meta["noise_model"] = model.noise_model
     arrays["meta_json"] = np.array(json.dumps(meta))
     for name in cls.stored("optional_array"):
@@ -82,8 +82,11 @@ def _str_tuple(v: Any) -> tuple[str, ...]:
     return tuple(str(s) for s in v)
 
 
+#: Meta fields written only when set (older models' files stay as they were).
+_WRITTEN_WHEN_SET = ("g_feature_shapes", "g_feature_params")
 #: How the meta fields are written to JSON (default: as they are) ...
-_META_WRITE = {"x_names": list, "g_feature_names": list, "info": jsonable}
+_META_WRITE = {"x_names": list, "g_feature_names": list, "info": jsonable, "g_feature_shapes": list,
+               "g_feature_params": lambda v: [[float(a), float(b)] for a, b in v]}
 #: ... and read back: (converter, default when absent; no default: required).
 _META_READ: dict[str, tuple] = {
     "training_hash": (str,),
@@ -92,6 +95,8 @@ _META_READ: dict[str, tuple] = {
     "y_name": (str, ""),
     "info": (dict, {}),
     "g_feature_names": (_str_tuple, []),
+    "g_feature_shapes": (_str_tuple, []),
+    "g_feature_params": (lambda v: tuple((float(a), float(b)) for a, b in v), []),
 }
 
 

@@ -12,7 +12,9 @@ A noise model is one class (a subclass of :class:`NoiseModel` decorated with
 - which model-file arrays it stores (:attr:`NoiseModel.stored_arrays`); the model file
   (:mod:`microctl.gp.modelfile`) stores its name explicitly.
 
-Two are registered here: ``physical`` (``phi = z^2``: a floor plus per-actuator stick-slip
+Three are registered here: ``dictionary`` (each feature its own smooth shape of its linear
+quantity, :mod:`microctl.gp.shaped_features`: the sources a selection chose from the stage's
+dictionary, :mod:`microctl.models.noise_dictionary`), ``physical`` (``phi = z^2``: a floor plus per-actuator stick-slip
 whose standard deviation grows with the step, the default of :mod:`microctl.models.training`)
 and ``hgp`` (the paper's constant prior mean ``mu0``, no features).
 """
@@ -23,7 +25,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from microctl.gp.noise_prior import LogVarianceMean, square
+from microctl.gp.noise_prior import LogVarianceMean, NoiseFeatures, square
+from microctl.gp.shaped_features import ShapeTransform
 
 __all__ = ["FEATURE_ARRAYS", "NoiseModel", "PhysicalNoise", "ConstantNoise", "register_noise_model",
            "noise_model_class", "noise_model_names"]
@@ -52,6 +55,11 @@ class NoiseModel:
     def transform(z: Any) -> Any:
         """``phi = transform(z)`` elementwise, for a NumPy array or a CasADi expression."""
         raise NotImplementedError
+
+    def for_features(self, features: NoiseFeatures, y_scale: float) -> "NoiseModel":
+        """This model for training with ``features`` on outputs of scale ``y_scale`` (the
+        models whose transform depends on the features return a bound copy; default itself)."""
+        return self
 
     def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray) -> np.ndarray:
         """The features ``phi`` at the standardised training inputs, shape (n, p).
@@ -116,3 +124,33 @@ class ConstantNoise(NoiseModel):
     def prior_mean(self, model: Any) -> LogVarianceMean:
         d = int(model.X.shape[1])
         return LogVarianceMean(np.zeros((0, d)), np.zeros(0), model.g_mu0, np.zeros(0), model.g_mean_coef_cov)
+
+
+@register_noise_model
+class DictionaryNoise(NoiseModel):
+    """``m(x) = log(c_0 + sum_j c_j shape_j(a_j . x + b_j))``: each selected source its own shape
+    (``sq``, ``abs``, ``sat``, ``up``, ``down``, ``bump``, ``exp``; :mod:`microctl.gp.shaped_features`)."""
+
+    name = "dictionary"
+
+    def __init__(self, transform: ShapeTransform | None = None):
+        self._transform = transform
+
+    def for_features(self, features: NoiseFeatures, y_scale: float) -> "DictionaryNoise":
+        if not features.shapes:
+            raise ValueError("the dictionary noise model needs shaped features (NoiseFeatures.shapes)")
+        return DictionaryNoise(ShapeTransform(features.shapes, features.params, y_scale))
+
+    def transform(self, z: Any) -> Any:  # type: ignore[override]
+        if self._transform is None:
+            raise ValueError("the dictionary noise model is not bound to its features (for_features)")
+        return self._transform(z)
+
+    def prior_mean(self, model: Any) -> LogVarianceMean:
+        p = 0 if model.g_feature_matrix is None else int(np.asarray(model.g_feature_matrix).shape[0])
+        if len(model.g_feature_shapes) != p or len(model.g_feature_params) != p:
+            raise ValueError(f"dictionary noise model: {len(model.g_feature_shapes)} shapes and "
+                             f"{len(model.g_feature_params)} parameter pairs for {p} features")
+        tr = ShapeTransform(model.g_feature_shapes, model.g_feature_params, model.y_scale)
+        return LogVarianceMean(model.g_feature_matrix, model.g_feature_offset, model.g_mu0, model.g_log_feature_coef,
+                               model.g_mean_coef_cov, transform=tr)

@@ -67,11 +67,18 @@ class NoiseFeatures:
         b_j.
     names : tuple of str
         One name per feature (``"dq1"``, ...).
+    shapes : tuple of str
+        Per feature, the shape a noise model with shaped features (``dictionary``,
+        :mod:`microctl.gp.shaped_features`) applies to ``a_j . x + b_j``; empty: squares (eq. 1).
+    params : tuple of (float, float)
+        The shapes' parameters, in the linear quantity's own units (empty with ``shapes``).
     """
 
     matrix: np.ndarray
     offset: np.ndarray
     names: tuple[str, ...]
+    shapes: tuple[str, ...] = ()
+    params: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         A = np.asarray(self.matrix, dtype=float)
@@ -81,6 +88,9 @@ class NoiseFeatures:
                               "do not match (expected (p, d), (p,), p)")
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
             raise ConfigError("noise features: non-finite coefficients")
+        if self.shapes and (len(self.shapes) != A.shape[0] or len(self.params) != A.shape[0]):
+            raise ConfigError(f"noise features: {len(self.shapes)} shapes and {len(self.params)} parameter pairs "
+                              f"for {A.shape[0]} features")
 
     @property
     def p(self) -> int:

@@ -37,7 +37,7 @@ import numpy as np
 
 from microctl.errors import ConfigError
 
-__all__ = ["SHAPES", "ShapedFeatures"]
+__all__ = ["SHAPES", "ShapedFeatures", "ShapeTransform"]
 
 #: Shape name -> number of parameters it reads from its row of ``params``.
 SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0}
@@ -174,3 +174,35 @@ class ShapedFeatures:
         return cls(np.asarray(a["matrix"], dtype=float).reshape(p, -1), np.asarray(a["offset"], dtype=float),
                    tuple(str(s) for s in a["shapes"]), np.asarray(a["params"], dtype=float).reshape(p, 2),
                    np.asarray(a["scale"], dtype=float), tuple(str(s) for s in a["names"]))
+
+
+class ShapeTransform:
+    """``phi_j = shape_j(y_scale * lin_j)`` column by column: the transform of g's prior mean
+    (:class:`~microctl.gp.noise_prior.LogVarianceMean`) for shaped features, whose linear maps the
+    trainer standardises to ``lin = (a . x + b) / y_scale`` (so ``y_scale * lin`` is the quantity in
+    its own units, µm for a step, where the shapes' parameters live).
+
+    Parameters
+    ----------
+    shapes : sequence of str
+        One of :data:`SHAPES` per feature.
+    params : array_like, shape (p, 2)
+    y_scale : float
+    """
+
+    def __init__(self, shapes, params, y_scale: float):
+        self.shapes = tuple(str(s) for s in shapes)
+        self.params = np.asarray(params, dtype=float).reshape(len(self.shapes), 2)
+        self.y_scale = float(y_scale)
+        bad = [s for s in self.shapes if s not in SHAPES]
+        if bad:
+            raise ConfigError(f"noise feature shape(s) {bad} unknown; valid: {sorted(SHAPES)}")
+
+    def __call__(self, lin):
+        if isinstance(lin, np.ndarray):
+            Z = lin * self.y_scale
+            out = np.empty_like(Z)
+            for j, kind in enumerate(self.shapes):
+                out[:, j] = _shape_np(kind, Z[:, j], self.params[j])
+            return out
+        return ca.vertcat(*[_shape_ca(kind, lin[j] * self.y_scale, self.params[j]) for j, kind in enumerate(self.shapes)])

@@ -230,6 +230,7 @@ class VHGPR:
         Phi = As = bs = None
         if nf is not None and nf.p > 0:
             As, bs = nf.standardised(data["x_mean"], data["x_scale"], data["y_scale"])
+            noise = noise.for_features(nf, data["y_scale"])
             Phi = noise.design(Xs, As, bs)
         else:
             noise = noise_model_class("hgp")()  # no features: the constant prior mean
@@ -281,6 +282,8 @@ class VHGPR:
             g_log_signal_var=kg.log_signal_var, g_log_bias_var=kg.log_bias_var,
             g_mu0=float(log_c[0]), bound=float(F), training_hash=data["training_hash"], info=info,
             g_feature_names=() if nf is None else tuple(nf.names), noise_model_name=noise.name,
+            g_feature_shapes=() if nf is None else tuple(nf.shapes),
+            g_feature_params=() if nf is None else tuple((float(a), float(b)) for a, b in nf.params),
         )
 
     def _fit_variants(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, f_spec: KernelSpec,

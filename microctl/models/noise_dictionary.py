@@ -127,11 +127,13 @@ class Selection:
     gains : tuple of float
         Log-likelihood gain of each when it entered (nats).
     thresholds : tuple of float
-        The gain each needed (half the chi-square quantile at its level).
+        The gain each needed at least (the BIC's half log n per parameter).
     loglik : float
         Maximised log-likelihood of the final set.
     tilt : ndarray, shape (k,), or None
         The direction of the tilt source, when it entered (its name is ``"tilt"``, last).
+    p_values : tuple of float
+        The adjusted p-value of each when it entered (it had to be below ``alpha``).
     """
 
     indices: tuple[int, ...]
@@ -140,6 +142,7 @@ class Selection:
     thresholds: tuple[float, ...]
     loglik: float
     tilt: np.ndarray | None = None
+    p_values: tuple[float, ...] = ()
 
 
 def _fit_variance(r2: np.ndarray, Phi: np.ndarray) -> tuple[float, np.ndarray]:
@@ -242,6 +245,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     chosen: list[int] = []
     gains: list[float] = []
     thresholds: list[float] = []
+    p_values: list[float] = []
     tilt = None
     ll, c = _fit_variance(r2, Phi[:, :0])
     while len(chosen) + (tilt is not None) < min(max_features, P):
@@ -272,10 +276,11 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
             chosen.append(best[3])
         gains.append(best[1])
         thresholds.append(best[2])
+        p_values.append(best[0])
         ll, c = ll + best[1], best[4]
     names_out = tuple(names[j] for j in chosen) + (("tilt",) if tilt is not None else ())
     return Selection(tuple(chosen), names_out, tuple(gains), tuple(thresholds), ll,
-                     None if tilt is None else np.asarray(tilt, dtype=float))
+                     None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values))
 
 
 def _fit_variance_with(r2, Phi, Z, w):

@@ -12,7 +12,7 @@ The test fixture that builds a model from fixed hyperparameters (no fit) is
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -24,6 +24,7 @@ from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import bind_to_stage
+from microctl.models.noise_dictionary import candidate_features, select_features
 from microctl.util.fields import setting, validate_settings
 
 __all__ = ["NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
@@ -74,10 +75,14 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
 LINEAR_PRIOR_VAR = 10.0
 
 #: Noise models of the residual GP, as registered in :mod:`microctl.gp.noise_models`:
-#: ``physical`` (g's prior mean is the stage's stick-slip physics, :mod:`microctl.gp.noise_prior`;
-#: the default) and ``hgp`` (the paper's constant prior mean). A noise model with features
+#: ``dictionary`` (the default: sources selected by the data, :func:`train_residual_model`),
+#: ``physical`` (g's prior mean is the stage's stick-slip physics, :mod:`microctl.gp.noise_prior`)
+#: and ``hgp`` (the paper's constant prior mean). A noise model with features
 #: gets the stage's actuator steps (:func:`noise_features_for`).
 NOISE_MODELS = noise_model_names()
+
+#: Family-wise level of each entry step of the noise-source selection (``dictionary``).
+SELECTION_ALPHA = 0.05
 
 
 @dataclass(frozen=True)
@@ -87,7 +92,10 @@ class ResidualModelSettings:
     Attributes
     ----------
     noise_model : str
-        ``"physical"`` (default): ``g ~ GP(m(x), K_g)`` with ``m(x) = log(c_0 + sum_i c_i dq_i^2)``,
+        ``"dictionary"`` (default): the noise sources are selected by the data among the stage's
+        candidates (:mod:`microctl.models.noise_dictionary`) and become g's prior mean, each with
+        its own shape (:mod:`microctl.gp.shaped_features`); nothing selected: the constant prior
+        mean. ``"physical"``: ``g ~ GP(m(x), K_g)`` with ``m(x) = log(c_0 + sum_i c_i dq_i^2)``,
         ``dq_i = K_i u - q_i,prev`` (eq. 12): a noise floor plus per-actuator stick-slip
         (:mod:`microctl.gp.noise_prior`). ``"hgp"``: the paper's ``g ~ GP(mu0, K_g)``.
     linear_trend : bool
@@ -113,7 +121,7 @@ class ResidualModelSettings:
         Seed of the restarts.
     """
 
-    noise_model: str = setting("physical", choices=NOISE_MODELS)
+    noise_model: str = setting("dictionary", choices=NOISE_MODELS)
     linear_trend: bool = setting(True)
     se: str = setting("auto", choices=("auto", "on", "off"))
     noise_parameter_uncertainty: bool = setting(False)
@@ -183,15 +191,66 @@ def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
         and ``u_*`` names, ``y_name = "residual_um"``.
     """
     st = settings or ResidualModelSettings()
+    if st.noise_model == "dictionary":
+        return bind_to_stage(_fit_dictionary(data, afm, st, max_time), afm)
     features = noise_features_for(afm) if noise_model_class(st.noise_model).uses_features else None
+    return bind_to_stage(_fit(data, afm, st, features, st.noise_model, max_time), afm)
+
+
+def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
+         features: NoiseFeatures | None, noise_model: str, max_time: float | None) -> FittedVHGPR:
+    """One VHGPR fit of the residual with the settings' mean model and the given noise model."""
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
-    model = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
-                  se=st.se if st.linear_trend else "on", noise_features=features, noise_model=st.noise_model,
-                  n_restarts=st.restarts,
-                  propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
-                  max_iter=st.max_iter, random_state=st.seed, max_time=max_time).fit(data.X, data.y)
-    return bind_to_stage(model, afm)
+    return VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
+                 se=st.se if st.linear_trend else "on", noise_features=features, noise_model=noise_model,
+                 n_restarts=st.restarts,
+                 propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
+                 max_iter=st.max_iter, random_state=st.seed, max_time=max_time).fit(data.X, data.y)
+
+
+def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
+                    max_time: float | None) -> FittedVHGPR:
+    """The ``dictionary`` noise model: which noise sources the stage has is selected by the data.
+
+    1. the residual model with the physical noise model (every actuator's stick-slip) gives the
+       mean correction f and so the residual r = y - f(x) at the training moves;
+    2. :func:`~microctl.models.noise_dictionary.select_features` chooses among the stage's candidate
+       sources (and a load tilt along the pose) by evidence, with a multiple-testing discipline;
+    3. the residual model is fitted again with exactly the selected sources as g's prior mean
+       (none selected: the paper's constant prior mean), their coefficients inside the bound.
+
+    The selection (names, log-likelihood gains and the gains they needed) is in
+    ``info["noise_selection"]``.
+    """
+    first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
+    r = data.y - first.predict(data.X).f_mean
+    cands = candidate_features(afm).rescaled(data.X)
+    U = data.X[:, afm.n_s:]
+    mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
+    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
+    rows = [np.asarray(cands.matrix)[j] for j in sel.indices]
+    offs = [float(np.asarray(cands.offset)[j]) for j in sel.indices]
+    shapes = [cands.shapes[j] for j in sel.indices]
+    params = [tuple(float(v) for v in np.asarray(cands.params)[j]) for j in sel.indices]
+    names = [cands.names[j] for j in sel.indices]
+    if sel.tilt is not None:  # exp(w . (u - mu) / sd) as a linear map of x = [s; u]
+        a = np.zeros(data.X.shape[1])
+        a[afm.n_s:] = sel.tilt / sd
+        rows.append(a)
+        offs.append(-float(sel.tilt @ (mu / sd)))
+        shapes.append("exp")
+        params.append((0.0, 0.0))
+        names.append("tilt")
+    record = {"selected": names, "gains_nats": [float(g) for g in sel.gains],
+              "p_adjusted": [float(p) for p in sel.p_values], "alpha": SELECTION_ALPHA,
+              "candidates": len(cands.names) + 1}
+    if not names:
+        model = _fit(data, afm, st, None, "hgp", max_time)
+    else:
+        feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
+        model = _fit(data, afm, st, feats, "dictionary", max_time)
+    return replace(model, info={**model.info, "noise_selection": record})
 
 
 def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
@@ -209,7 +268,19 @@ def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
         "friction_std_per_um"}}}``; only ``noise_model`` for the ``hgp`` model.
     """
     out: dict = {"noise_model": model.noise_model}
+    selection = model.info.get("noise_selection")
+    if selection is not None:
+        out["selection"] = selection
+    if model.noise_model == "dictionary":
+        c = np.exp(np.asarray(model.g_log_feature_coef))
+        out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
+        out["sources"] = {name: {"shape": shape, "params": list(par), "coef_um2": float(ci * model.y_scale**2)}
+                          for name, shape, par, ci in zip(model.g_feature_names, model.g_feature_shapes,
+                                                          model.g_feature_params, c)}
+        return out
     if model.noise_model != "physical":
+        if selection is not None:
+            out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
         return out
     sens_all = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
     sens = [sens_all[afm.actuator_names.index(f.removeprefix("d"))] for f in model.g_feature_names]

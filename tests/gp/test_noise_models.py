@@ -59,7 +59,7 @@ def _rewrite_meta(src: Path, dst: Path, edit) -> None:
 
 
 def test_registry_has_the_two_package_models() -> None:
-    assert noise_models.noise_model_names()[:2] == ("physical", "hgp")
+    assert noise_models.noise_model_names()[:3] == ("physical", "hgp", "dictionary")
     assert noise_model_class("hgp").uses_features is False
     with pytest.raises(KeyError, match="unknown noise model 'nope'"):
         noise_model_class("nope")
