@@ -202,7 +202,7 @@ class ShapeTransform:
         if isinstance(lin, np.ndarray):
             Z = lin * self.y_scale
             out = np.empty_like(Z)
-            for j, kind in enumerate(self.shapes):
-                out[:, j] = _shape_np(kind, Z[:, j], self.params[j])
+            for j, kind in enumerate(self.shapes):  # the features are the last axis (any leading shape)
+                out[..., j] = _shape_np(kind, Z[..., j], self.params[j])
             return out
         return ca.vertcat(*[_shape_ca(kind, lin[j] * self.y_scale, self.params[j]) for j, kind in enumerate(self.shapes)])

@@ -126,3 +126,13 @@ def test_a_load_tilt_the_cad_model_cannot_see_is_found_along_its_direction(afm):
     sel = select_features(r, cands.values(X), cands.names, tilt_inputs=Z)
     assert sel.names[0] == "tilt", sel
     assert sel.tilt @ w / np.linalg.norm(sel.tilt) > 0.9
+
+
+def test_shape_transform_acts_on_the_last_axis_of_any_array():
+    """g's prior mean is evaluated on (m, p) rows and on (m1, m2, p) pairs (sequence control): the
+    transform must give the same numbers for the same linear values either way."""
+    from microctl.gp.shaped_features import ShapeTransform
+
+    tr = ShapeTransform(("sq", "bump", "exp"), [(0, 0), (1.0, 0.5), (0, 0)], 0.3)
+    lin = np.random.default_rng(4).normal(size=(3, 5, 3))
+    np.testing.assert_array_equal(tr(lin).reshape(15, 3), tr(lin.reshape(15, 3)))
