@@ -416,7 +416,7 @@ def test_oracle_sequence_avoids_the_forced_move():
     afm = AnalyticForwardModel(cfg.stage)
     targets = [20.0, 40.0]
     with SimulatedStage(cfg, seed=0) as st:
-        plan = OracleSequenceController(afm, st, grid=15, line_points=31, zooms=2).plan(targets)
+        plan = OracleSequenceController(afm, st, grid=15, line_points=31, zooms=2).plan(targets).steps
         one = OracleController(afm, st, grid=15, line_points=31, zooms=2)
         s, greedy = afm.zero_state(), []
         for t in targets:
