@@ -362,7 +362,8 @@ class SequenceController(BaseController):
                 path = self._refine_path(s0, targets, self._backtrack(cand, back, int(pos[i])))
                 if path is not None:
                     r = self._plan_r(s0, targets, path)
-                    best = (self.sequence_objective.value(r), path, f"{status}; fallback to seed", float(value_grid[i]), False, r)
+                    best = (self.sequence_objective.value(r), path, f"{status}; fallback to seed",
+                            float(value_grid[i]), False, r)
                     break
         if best is None:
             raise SolveError(f"no valid command sequence for targets {targets.tolist()} µm (IPOPT: {status})")
@@ -372,7 +373,8 @@ class SequenceController(BaseController):
         steps = tuple(replace(self._result(S[k], float(targets[k]), U[k], st, success, attempts, t0), solve_time_s=dt)
                       for k in range(T))
         return SequenceResult(
-            steps=steps, targets_um=tuple(float(t) for t in targets), sequence_objective=self.sequence_objective.name, r_e_um2=r,
+            steps=steps, targets_um=tuple(float(t) for t in targets),
+            sequence_objective=self.sequence_objective.name, r_e_um2=r,
             total_r_e_um2=float(np.sum(r)), worst_r_e_um2=float(np.max(r)), seed_total_r_e_um2=seed_value,
             status=st, success=success, iterations=int(attempts["iter"]), n_starts=int(attempts["n"]),
             warm_started=bool(warm_used), solve_time_s=dt)
