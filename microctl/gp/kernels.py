@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-__all__ = ["KernelSpec", "Kernel", "se_matrix"]
+__all__ = ["KernelSpec", "Kernel", "se_matrix", "ard_se"]
 
 
 def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float,
@@ -262,3 +262,34 @@ class Kernel:
         if v is not None:
             return out + ca.dot(ca.DM(v), xs * xs)
         return ca.DM(out)
+
+
+def ard_se(
+    Xa: np.ndarray,
+    Xb: np.ndarray,
+    log_lengthscales: np.ndarray,
+    log_signal_var: float,
+    log_bias_var: float | None,
+) -> np.ndarray:
+    """Squared-exponential kernel with one lengthscale per input (ARD), plus an optional bias.
+
+    ``k(x, x') = exp(log_signal_var) * exp(-0.5 * sum_d ((x_d - x'_d) / exp(log_lengthscales_d))**2)
+    + (exp(log_bias_var) if log_bias_var is not None else 0)``; a thin wrapper of
+    :class:`Kernel`, the one implementation.
+
+    Parameters
+    ----------
+    Xa : ndarray, shape (m, d)
+    Xb : ndarray, shape (n, d)
+    log_lengthscales : ndarray, shape (d,)
+    log_signal_var : float
+    log_bias_var : float or None
+
+    Returns
+    -------
+    ndarray, shape (m, n)
+    """
+    k = Kernel(np.asarray(log_lengthscales, dtype=float), float(log_signal_var),
+               None if log_bias_var is None else float(log_bias_var))
+    return k.matrix(Xa, Xb)
+

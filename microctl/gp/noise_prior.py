@@ -39,14 +39,20 @@ x_scale``, outputs ``ys = (y - y_mean) / y_scale`` (so ``c`` are variances in un
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
 
 from microctl.errors import ConfigError
 
-__all__ = ["NoiseFeatures", "LogVarianceMean"]
+__all__ = ["NoiseFeatures", "LogVarianceMean", "square"]
+
+
+def square(z: Any) -> Any:
+    """``phi = z * z`` of (1), elementwise, for a NumPy array or a CasADi expression."""
+    return z * z
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +115,10 @@ class LogVarianceMean:
         log c_j.
     coef_cov : ndarray, shape (p + 1, p + 1), or None
         Covariance of (c_0, .., c_p); None: parameter uncertainty not propagated.
+    transform : callable
+        ``phi_j = transform(a_j . x + b_j)`` elementwise, for NumPy arrays and CasADi
+        expressions alike (default :func:`square`, eq. 1; a noise model of
+        :mod:`microctl.gp.noise_models` may give another).
     """
 
     feature_matrix: np.ndarray
@@ -116,6 +126,7 @@ class LogVarianceMean:
     log_const: float
     log_coef: np.ndarray
     coef_cov: np.ndarray | None = None
+    transform: Callable[[Any], Any] = field(default=square)
 
     @classmethod
     def constant(cls, d: int, mu0: float) -> "LogVarianceMean":
@@ -136,7 +147,7 @@ class LogVarianceMean:
         """``[1, phi_1(x), ..., phi_p(x)]`` at the rows of Xs, shape (m, p + 1)."""
         Xs = np.asarray(Xs, dtype=float)
         lin = Xs @ self.feature_matrix.T + self.feature_offset
-        return np.hstack([np.ones((Xs.shape[0], 1)), lin * lin])
+        return np.hstack([np.ones((Xs.shape[0], 1)), self.transform(lin)])
 
     def value(self, Xs: np.ndarray) -> np.ndarray:
         """m(x) of (1), shape (m,)."""
@@ -177,7 +188,7 @@ class LogVarianceMean:
                 var = ca.DM(0.0 if self.coef_cov is None else math.log1p(float(self.coef_cov[0, 0]) / c[0] ** 2))
             return ca.DM(float(self.log_const)), var
         lin = ca.mtimes(ca.DM(self.feature_matrix), xs) + ca.DM(self.feature_offset)
-        phi = ca.vertcat(ca.DM(1.0), lin * lin)
+        phi = ca.vertcat(ca.DM(1.0), self.transform(lin))
         v = ca.dot(ca.DM(c), phi)
         m = ca.log(v)  # (1)
         if not with_variance:

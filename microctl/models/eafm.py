@@ -19,26 +19,25 @@ module builds, from an :class:`~microctl.models.afm.AnalyticForwardModel` and a
 - vectorised NumPy helpers for the controller's global seeding
   (:meth:`EAFM.mean_and_grad_u`, :meth:`EAFM.g_mean_np`).
 
-Graph design (measurements in ``docs/controller.md``): MX, not SX; the mean terms are
-``k^T alpha`` with ``k`` built from one dense (n x d) product; the variance terms are
-``k** - ||L^-1 k||^2`` with ``L^-1`` a constant lower-triangular (sparse) DM.
+The GP's quantities, in NumPy and as CasADi graphs alike, are those of the model's one
+posterior, :class:`~microctl.gp.posterior.Posterior` (graph design, measured in
+``docs/controller.md``: MX, not SX; the mean terms are ``k^T alpha`` with ``k`` built from
+one dense (n x d) product; the variance terms are ``k** - ||L^-1 k||^2`` with ``L^-1`` a
+constant lower-triangular (sparse) DM); this module adds the AFM and the stage binding.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse as sps
 
 from microctl.errors import ConfigError
-from microctl.gp.kernels import se_matrix
-from microctl.gp.vhgpr import FittedVHGPR
+from microctl.gp.fitted import FittedVHGPR
+from microctl.gp.posterior import Posterior
 from microctl.models.afm import AnalyticForwardModel, plausible_t_bound_um
 
 __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
@@ -99,18 +98,6 @@ class EAFMPrediction:
     q: np.ndarray
 
 
-#: Kernel factors below exp(-_SE_FLUSH) are set to 0 in the pairwise products (< 1e-150 of
-#: the largest, far below round-off); their subnormal values and products slow exp and the
-#: BLAS product several-fold (measured 8 ms instead of 1 ms at 150 x 500 x 160).
-_SE_FLUSH = 345.0
-
-
-def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
-    """L^-1 of a lower Cholesky factor as a sparse (lower-triangular) DM."""
-    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
-    return ca.DM(sps.csc_matrix(np.tril(Linv)))
-
-
 class EAFM:
     """The EAFM of eq. 1 built from an AFM and a fitted residual VHGPR.
 
@@ -159,15 +146,7 @@ class EAFM:
         if model.n_inputs != self.n_x:
             raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
                               f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
-        self._kf = model.f_kernel
-        self._kg = model.g_kernel
-        self._gm = model.g_prior_mean
-        self._gm_evidence = model.g_prior_mean_with_uncertainty
-        self._x_mean = np.asarray(model.x_mean, dtype=float)
-        self._x_scale = np.asarray(model.x_scale, dtype=float)
-        self._log_y2 = 2.0 * math.log(model.y_scale)
-        self._Lf_inv: ca.DM | None = None
-        self._Lg_inv: ca.DM | None = None
+        self.posterior: Posterior = model.posterior
         self._function: ca.Function | None = None
 
     @property
@@ -196,16 +175,6 @@ class EAFM:
         return int(self.model.X.shape[0])
 
     # ---- CasADi ------------------------------------------------------------------
-    def _lf_inv(self) -> ca.DM:
-        if self._Lf_inv is None:
-            self._Lf_inv = _tril_inverse_dm(self.model.f_chol)
-        return self._Lf_inv
-
-    def _lg_inv(self) -> ca.DM:
-        if self._Lg_inv is None:
-            self._Lg_inv = _tril_inverse_dm(self.model.g_chol)
-        return self._Lg_inv
-
     def expressions(self, s: ca.MX, u: ca.MX, which: tuple[str, ...] | None = None) -> dict[str, ca.MX]:
         """EAFM quantities as MX expressions of the symbols ``s`` (n_s, 1) and ``u`` (n_p, 1).
 
@@ -222,34 +191,15 @@ class EAFM:
         """
         allq = ("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")
         which = allq if which is None else tuple(which)
-        m = self.model
-        out: dict[str, ca.MX] = {}
         x = ca.vertcat(s, u)  # eq. 3: x = [s; u]
-        xs = (x - ca.DM(self._x_mean)) / ca.DM(self._x_scale)
+        post = self.posterior
+        xs = (x - ca.DM(post.x_mean)) / ca.DM(post.x_scale)
         t_afm, q = self.afm.f_a(s, u)  # eq. 14
-        need_f = any(k in which for k in ("t_mean", "f_mean", "f_var"))
-        need_g = any(k in which for k in ("g_mean", "g_var"))
-        kf = self._kf.casadi_column(xs, m.X) if need_f else None
-        kg = self._kg.casadi_column(xs, m.X) if need_g else None
-        if "t_mean" in which or "f_mean" in which:
-            a = ca.dot(kf, ca.DM(np.asarray(m.f_alpha)))
-            f_mean = m.y_mean + m.y_scale * a  # GP mean g_e
-            out["f_mean"] = f_mean
-            out["t_mean"] = t_afm + f_mean  # eq. 1: T_t (f_a + g_e)
-        if "f_var" in which:
-            # epistemic variance  y_scale^2 (k** - ||L_f^-1 k||^2)  [notes/vhgpr.md prediction]
-            out["f_var"] = m.y_scale**2 * (self._kf.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
-        if need_g:
-            # g's prior mean m(x) (noise_prior eq. 1; the constant mu0 for the paper's model) and
-            # its parameter variance
-            prior, prior_var = self._gm.casadi(xs, with_variance="g_var" in which)
-        if "g_mean" in which:
-            out["g_mean"] = ca.dot(kg, ca.DM(np.asarray(m.g_beta))) + prior + self._log_y2
-        if "g_var" in which:
-            gp_var = self._kg.casadi_diag(xs)
-            if not m.g_gp_var_negligible:  # else its bound k** (vhgpr.G_GP_VAR_NEGLIGIBLE)
-                gp_var = gp_var - ca.sumsqr(ca.mtimes(self._lg_inv(), kg))
-            out["g_var"] = gp_var + prior_var
+        gp_which = tuple(k for k in ("f_mean", "f_var", "g_mean", "g_var") if k in which or (k == "f_mean"
+                                                                                            and "t_mean" in which))
+        out = post.casadi(xs, gp_which)  # notes/vhgpr.md prediction
+        if "t_mean" in which:
+            out["t_mean"] = t_afm + out["f_mean"]  # eq. 1: T_t (f_a + g_e)
         if "q" in which:
             out["q"] = q
         if "t_afm" in which:
@@ -292,43 +242,26 @@ class EAFM:
         dt_du : ndarray, shape (m, n_p)
         """
         X = self._x(s, U)
-        xs = (X - self._x_mean) / self._x_scale
-        a, da = self._kf.cross_grad(xs, self.model.X, np.asarray(self.model.f_alpha))
-        f = self.model.y_mean + self.model.y_scale * a
-        dx = self.model.y_scale * da / self._x_scale
+        f, dx = self.posterior.f_mean_and_grad(self.posterior.standardise(X))
         d = U @ self.afm.w_pred
         t = self.afm.sensor.forward(d) + f  # eq. 13: the gauge reading of the tool displacement
         dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
         return t, dt
 
-    # ---- g's posterior (notes/vhgpr.md, prediction) at standardised inputs xs, shape (m, n_x) ----
+    # ---- g's posterior (notes/vhgpr.md, prediction): thin calls of the model's Posterior ----
     def _xs(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
-        return (self._x(s, U) - self._x_mean) / self._x_scale
-
-    def _g_mean(self, xs: np.ndarray, Kg: np.ndarray) -> np.ndarray:
-        """g's posterior mean, shape (m,), from ``Kg = k_g(xs, X)``."""
-        return Kg @ np.asarray(self.model.g_beta) + self._gm.value(xs) + self._log_y2
-
-    def _g_gp_var(self, xs: np.ndarray, Kg: np.ndarray | None = None) -> np.ndarray:
-        """g's GP variance ``k** - ||L_g^-1 k||^2`` (O(m n^2)), or its prior bound ``k**`` when
-        negligible (O(m)), shape (m,); ``Kg = k_g(xs, X)`` when the caller has it."""
-        if self.model.g_gp_var_negligible:
-            return self._kg.diag(xs)
-        Kg = self._kg.matrix(xs, self.model.X) if Kg is None else Kg
-        v = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-        return np.maximum(self._kg.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
+        return self.posterior.standardise(self._x(s, U))
 
     def g_mean_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """Mean of the log noise variance at many u (O(m n), vectorised), shape (m,)."""
         xs = self._xs(s, U)
-        return self._g_mean(xs, self._kg.matrix(xs, self.model.X))
+        return self.posterior.g_mean(xs, self.posterior.g_kernel_rows(xs))
 
     def noise_uncertainty(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """How uncertain the predicted log noise variance is at many u, shape (m,): g's GP
         variance plus the parametric prior mean's parameter variance, whether or not the model
         propagates the latter into ``g_var`` (:attr:`FittedVHGPR.g_prior_mean_with_uncertainty`)."""
-        xs = self._xs(s, U)
-        return self._g_gp_var(xs) + self._gm_evidence.variance(xs)
+        return self.posterior.g_uncertainty(self._xs(s, U))
 
     def g_joint(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint posterior of the log noise variance at the rows of U: mean (m,), covariance (m, m).
@@ -338,14 +271,7 @@ class EAFM:
         covariance is included whether or not the model propagates it into ``g_var`` (this
         is for comparing poses on the evidence: :func:`microctl.control.controller.compare_noise`).
         """
-        xs = self._xs(s, U)
-        Kg = self._kg.matrix(xs, self.model.X)
-        mean = self._g_mean(xs, Kg)
-        cov = self._kg.matrix(xs, xs) + self._gm_evidence.covariance(xs, xs)
-        if not self.model.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
-            V = sla.solve_triangular(self.model.g_chol, Kg.T, lower=True, check_finite=False)
-            cov = cov - V.T @ V
-        return mean, cov
+        return self.posterior.g_joint(self._xs(s, U))
 
     def g_np_pairs(self, S: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -375,37 +301,10 @@ class EAFM:
         """
         S = np.atleast_2d(np.asarray(S, dtype=float))
         U = np.atleast_2d(np.asarray(U, dtype=float))
-        ns = self.n_s
-        xs_s = (S - self._x_mean[:ns]) / self._x_scale[:ns]
-        xs_u = (U - self._x_mean[ns:]) / self._x_scale[ns:]
-        kg, X, beta = self._kg, self.model.X, np.asarray(self.model.g_beta, dtype=float)
-        ls = np.asarray(kg.log_lengthscales, dtype=float)
-        A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
-        A_u = se_matrix(xs_u, X[:, ns:], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
-        mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
-        gm = self._gm
-        if gm.p == 0:
-            prior = np.full(mean.shape, float(gm.log_const))
-            prior_var = np.full(mean.shape, float(gm.variance(np.zeros((1, self.n_x)))[0]))
-        else:
-            F = np.asarray(gm.feature_matrix, dtype=float)
-            lin = ((xs_s @ F[:, :ns].T)[:, None, :] + (xs_u @ F[:, ns:].T)[None, :, :]
-                   + np.asarray(gm.feature_offset, dtype=float))             # (m1, m2, p)
-            Phi = np.concatenate([np.ones(lin.shape[:2] + (1,)), lin * lin], axis=2)
-            V = Phi @ gm.coef
-            prior = np.log(V)                                                 # noise_prior eq. 1
-            if gm.coef_cov is None:
-                prior_var = np.zeros(mean.shape)
-            else:
-                J = Phi / V[:, :, None]
-                prior_var = np.log1p(np.maximum(np.einsum("abi,ij,abj->ab", J, gm.coef_cov, J), 0.0))  # eq. 2
-        mean = mean + prior + self._log_y2
-        var = prior_var
-        if self.model.g_gp_var_negligible:
-            var = var + (kg.signal_var + kg.bias_var)
-        elif with_gp_var:  # g_np's variance: the prior mean's plus the GP's exact term, row by row
-            var = np.vstack([self._gm.variance(xs) + self._g_gp_var(xs) for xs in (self._xs(s, U) for s in S)])
-        return mean, var
+        post, ns = self.posterior, self.n_s
+        xs_s = (S - post.x_mean[:ns]) / post.x_scale[:ns]
+        xs_u = (U - post.x_mean[ns:]) / post.x_scale[ns:]
+        return post.g_pairs(xs_s, xs_u, with_gp_var=with_gp_var)
 
     def g_np(self, s: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance of the log noise variance at many u, shapes (m,), (m,).
@@ -414,9 +313,4 @@ class EAFM:
         k||^2`` and keeps the prior mean's parameter variance (O(m)): a cheap proxy for
         seeding at large n.
         """
-        xs = self._xs(s, U)
-        Kg = self._kg.matrix(xs, self.model.X)
-        var = self._gm.variance(xs)
-        if self.model.g_gp_var_negligible or with_gp_var:
-            var = var + self._g_gp_var(xs, Kg)
-        return self._g_mean(xs, Kg), var
+        return self.posterior.g_mean_var(self._xs(s, U), with_gp_var=with_gp_var)

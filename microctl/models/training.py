@@ -19,6 +19,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from microctl.errors import ConfigError, DataError
+from microctl.gp.noise_models import noise_model_class, noise_model_names
 from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
@@ -72,9 +73,11 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
 #: vague-prior limit in which the trend is the generalised-least-squares estimate).
 LINEAR_PRIOR_VAR = 10.0
 
-#: Noise models of the residual GP: ``physical`` (g's prior mean is the stage's stick-slip
-#: physics, :mod:`microctl.gp.noise_prior`; the default) and ``hgp`` (the paper's constant prior mean).
-NOISE_MODELS = ("physical", "hgp")
+#: Noise models of the residual GP, as registered in :mod:`microctl.gp.noise_models`:
+#: ``physical`` (g's prior mean is the stage's stick-slip physics, :mod:`microctl.gp.noise_prior`;
+#: the default) and ``hgp`` (the paper's constant prior mean). A noise model with features
+#: gets the stage's actuator steps (:func:`noise_features_for`).
+NOISE_MODELS = noise_model_names()
 
 
 @dataclass(frozen=True)
@@ -180,11 +183,12 @@ def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
         and ``u_*`` names, ``y_name = "residual_um"``.
     """
     st = settings or ResidualModelSettings()
-    features = noise_features_for(afm) if st.noise_model == "physical" else None
+    features = noise_features_for(afm) if noise_model_class(st.noise_model).uses_features else None
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
     model = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
-                  se=st.se if st.linear_trend else "on", noise_features=features, n_restarts=st.restarts,
+                  se=st.se if st.linear_trend else "on", noise_features=features, noise_model=st.noise_model,
+                  n_restarts=st.restarts,
                   propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
                   max_iter=st.max_iter, random_state=st.seed, max_time=max_time).fit(data.X, data.y)
     return bind_to_stage(model, afm)

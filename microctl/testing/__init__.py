@@ -3,7 +3,7 @@
 :mod:`microctl.testing.plant` simulates runs of the package's stage with a planted cause (the
 diagnosis's own hidden-effect tests; the independent generator is ``tests/independent_stage.py``).
 
-:func:`fixed_hyperparameter_model` builds a :class:`~microctl.gp.vhgpr.FittedVHGPR` directly
+:func:`fixed_hyperparameter_model` builds a :class:`~microctl.gp.fitted.FittedVHGPR` directly
 from chosen hyperparameters and a chosen (planted) log-noise function, with no fitting: a
 model whose noise landscape is known exactly, so the controller's tests and
 ``scripts/bench_solve.py`` do not depend on what an optimiser finds.
@@ -17,7 +17,8 @@ import math
 import numpy as np
 import scipy.linalg as sla
 
-from microctl.gp.vhgpr import FittedVHGPR, ard_se
+from microctl.gp.fitted import FittedVHGPR
+from microctl.gp.kernels import ard_se
 
 __all__ = ["fixed_hyperparameter_model"]
 

@@ -17,7 +17,9 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-import microctl.gp.vhgpr as vh
+import microctl.gp.bound as bound
+import microctl.gp.homoscedastic as homoscedastic
+import microctl.gp.trainer as trainer
 from microctl.cli import main
 from microctl.errors import ConfigError, DataError, MicroctlError
 from microctl.gp.kernels import KernelSpec
@@ -79,11 +81,11 @@ def test_ard_se_matches_double_loop() -> None:
 # --------------------------------------------------------------------------- the bound and its gradient
 
 
-def _layout(n: int, d: int, bias: bool, linear: bool = False, p: int = 0) -> "vh._Layout":
-    return vh._Layout(n=n, f=KernelSpec(d, bias=bias, linear=linear), g=KernelSpec(d, bias=bias), p=p)
+def _layout(n: int, d: int, bias: bool, linear: bool = False, p: int = 0) -> "bound.Layout":
+    return bound.Layout(n=n, f=KernelSpec(d, bias=bias, linear=linear), g=KernelSpec(d, bias=bias), p=p)
 
 
-def _theta(rng: np.random.Generator, layout: "vh._Layout") -> np.ndarray:
+def _theta(rng: np.random.Generator, layout: "bound.Layout") -> np.ndarray:
     return np.concatenate([
         rng.normal(-0.5, 0.8, layout.n),  # log lambda, spread over ~ [0.1, 3]
         rng.normal(0.0, 0.3, layout.f.size),  # f kernel
@@ -93,7 +95,7 @@ def _theta(rng: np.random.Generator, layout: "vh._Layout") -> np.ndarray:
     ])
 
 
-def _naive_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: "vh._Layout",
+def _naive_bound(theta: np.ndarray, X: np.ndarray, y: np.ndarray, layout: "bound.Layout",
                  Phi: np.ndarray | None = None) -> float:
     """The MV bound from the textbook formulas (direct inverses, scipy's Gaussian density),
     kernels written out here by hand, g's prior mean m = log(c_0 + Phi c) (noise_prior eq. 1)."""
@@ -139,7 +141,7 @@ def test_bound_matches_textbook_formulas(bias: bool, linear: bool, p: int) -> No
     layout = _layout(n, d, bias, linear, p)
     for _ in range(3):
         theta = _theta(rng, layout)
-        F, _, _ = vh._mv_bound(theta, X, y, layout, want_grad=False, Phi=Phi)
+        F, _, _ = bound.mv_bound(theta, X, y, layout, want_grad=False, Phi=Phi)
         assert F == pytest.approx(_naive_bound(theta, X, y, layout, Phi), rel=1e-8, abs=1e-8)
 
 
@@ -151,14 +153,14 @@ def test_gradient_matches_central_differences_per_block(bias: bool, linear: bool
     Phi = (X @ rng.standard_normal((d, p)) + 0.2) ** 2 if p else None
     layout = _layout(n, d, bias, linear, p)
     theta = _theta(rng, layout)
-    _, grad, _ = vh._mv_bound(theta, X, y, layout, Phi=Phi)
+    _, grad, _ = bound.mv_bound(theta, X, y, layout, Phi=Phi)
     h = 1e-5
     fd = np.empty_like(theta)
     for i in range(theta.size):
         e = np.zeros_like(theta)
         e[i] = h
-        fd[i] = (vh._mv_bound(theta + e, X, y, layout, want_grad=False, Phi=Phi)[0]
-                 - vh._mv_bound(theta - e, X, y, layout, want_grad=False, Phi=Phi)[0]) / (2 * h)
+        fd[i] = (bound.mv_bound(theta + e, X, y, layout, want_grad=False, Phi=Phi)[0]
+                 - bound.mv_bound(theta - e, X, y, layout, want_grad=False, Phi=Phi)[0]) / (2 * h)
     blocks = {
         "log lambda": slice(0, n),
         "f hyperparameters": layout.f_slice,
@@ -177,8 +179,8 @@ def test_gradient_of_homoscedastic_likelihood() -> None:
     X, y = rng.standard_normal((n, d)), rng.standard_normal(n)
     spec = KernelSpec(d, bias=True, linear=True)
     theta = np.array([0.2, -0.3, 0.1, -1.5, -0.7, 0.4, -2.0])  # ls (2), signal, bias, linear (2), noise
-    _, g = vh._gp_loglik(theta, X, y, spec)
-    fd = np.array([(vh._gp_loglik(theta + e, X, y, spec)[0] - vh._gp_loglik(theta - e, X, y, spec)[0]) / 2e-5
+    _, g = homoscedastic.gp_loglik(theta, X, y, spec)
+    fd = np.array([(homoscedastic.gp_loglik(theta + e, X, y, spec)[0] - homoscedastic.gp_loglik(theta - e, X, y, spec)[0]) / 2e-5
                    for e in np.eye(theta.size) * 1e-5])
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
 
@@ -196,7 +198,7 @@ def test_noise_parameter_covariance_is_the_fisher_information_inverse() -> None:
     D = np.hstack([np.ones((n, 1)), Phi])
     J = D / V[:, None]
     info = 0.5 * J.T @ J + np.diag(np.mean(D, axis=0) ** 2)
-    np.testing.assert_allclose(vh._mean_coef_covariance(state, log_c, Phi), np.linalg.inv(info), rtol=1e-10)
+    np.testing.assert_allclose(bound.mean_coef_covariance(state, log_c, Phi), np.linalg.inv(info), rtol=1e-10)
 
 
 # --------------------------------------------------------------------------- the fitted model
@@ -351,7 +353,7 @@ def test_all_restarts_failing_raises(monkeypatch: pytest.MonkeyPatch) -> None:
     def broken(*args: object, **kwargs: object) -> None:
         raise np.linalg.LinAlgError("forced failure")
 
-    monkeypatch.setattr(vh, "_mv_bound", broken)
+    monkeypatch.setattr(trainer, "mv_bound", broken)
     X, y, _, _ = _planted(20, seed=1)
     with pytest.raises(MicroctlError, match="every optimisation run failed.*no finite bound"):
         VHGPR(n_restarts=2, max_iter=10).fit(X, y)

@@ -1,0 +1,298 @@
+"""The fitted VHGPR: its stored quantities, prediction and model file.
+
+:class:`FittedVHGPR` holds everything a prediction needs and nothing else (see
+``docs/vhgpr.md``), in standardised units except where a field says otherwise; its
+posterior (``notes/vhgpr.md`` [N prediction]) is :class:`~microctl.gp.posterior.Posterior`,
+its file format :mod:`microctl.gp.modelfile`, its noise model
+:mod:`microctl.gp.noise_models`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from microctl.errors import DataError
+from microctl.gp.arrays import as_float_array, check_finite
+from microctl.gp.kernels import Kernel
+from microctl.gp.linalg import LOG_2PI
+from microctl.gp.modelfile import read_model, write_model
+from microctl.gp.noise_models import noise_model_class
+from microctl.gp.noise_prior import LogVarianceMean
+from microctl.gp.posterior import Posterior
+
+__all__ = ["VHGPRPrediction", "FittedVHGPR"]
+
+
+@dataclass(frozen=True, eq=False)
+class VHGPRPrediction:
+    """Predictive distribution at m test inputs, in the ORIGINAL units of y.
+
+    Attributes
+    ----------
+    f_mean : ndarray, shape (m,)
+        ``y_mean + y_scale * a*``.
+    f_var : ndarray, shape (m,)
+        ``y_scale**2 * c*^2`` (epistemic variance of f).
+    g_mean : ndarray, shape (m,)
+        Mean of the log noise variance: ``mu* + 2 log(y_scale)``.
+    g_var : ndarray, shape (m,)
+        ``s*^2``, variance of the log noise variance.
+    y_mean : ndarray, shape (m,)
+        Equal to ``f_mean``.
+    y_var : ndarray, shape (m,)
+        ``f_var + exp(g_mean + g_var / 2)``.
+    """
+
+    f_mean: np.ndarray
+    f_var: np.ndarray
+    g_mean: np.ndarray
+    g_var: np.ndarray
+    y_mean: np.ndarray
+    y_var: np.ndarray
+
+
+def _stored(role: str, *, shape: tuple[str, ...] | None = None, log: bool = False, **kw: Any) -> Any:
+    """A dataclass field with its storage role in the model file (see :meth:`FittedVHGPR.stored`),
+    its shape in the dimensions ``n`` (training points), ``d`` (inputs), ``p`` and ``p+1``
+    (noise features) and whether it is a log-parameter (both checked at load)."""
+    return field(metadata={"store": role, "shape": shape, "log": log}, **kw)
+
+
+@dataclass(frozen=True, eq=False)
+class FittedVHGPR:
+    """A fitted VHGPR: everything a prediction needs (standardised units unless stated).
+
+    Attributes
+    ----------
+    x_mean, x_scale : ndarray, shape (d,)
+        Input standardisation ``xs = (x - x_mean) / x_scale``.
+    y_mean, y_scale : float
+        Output standardisation ``ys = (y - y_mean) / y_scale``.
+    X : ndarray, shape (n, d)
+        Standardised training inputs.
+    f_log_lengthscales, f_log_signal_var, f_log_bias_var
+        Kernel of f (see :func:`ard_se`); the bias is None when not used.
+    g_log_lengthscales, g_log_signal_var, g_log_bias_var
+        Kernel of g.
+    g_mu0 : float
+        Prior mean of g (standardised units).
+    log_lambda : ndarray, shape (n,)
+        Variational parameters log Lambda.
+    f_alpha : ndarray, shape (n,)
+        ``(K_f + R)^-1 ys``.
+    f_chol : ndarray, shape (n, n)
+        Lower Cholesky factor of ``K_f + R``.
+    g_beta : ndarray, shape (n,)
+        ``(Lambda - I/2) 1``.
+    g_chol : ndarray, shape (n, n)
+        Lower Cholesky factor of ``K_g + Lambda^-1``.
+    bound : float
+        The MV bound at the optimum (standardised data).
+    training_hash : str
+        sha256 hex of the original X and y as float64 bytes.
+    geometry_hash : str or None
+        Set by callers (``dataclasses.replace``) for residual models.
+    x_names : tuple of str
+        Input column names, if known.
+    y_name : str
+        Output column name, if known.
+    info : dict
+        Fit diagnostics: jitter, restarts tried/failed, iterations, time.
+    f_log_linear_vars : ndarray, shape (d,), or None
+        ARD linear part of f's kernel (:mod:`microctl.gp.kernels`); None when not used.
+    g_feature_matrix, g_feature_offset : ndarray, shapes (p, d) and (p,), or None
+        Features of g's parametric prior mean (:mod:`microctl.gp.noise_prior` eq. 1) in
+        standardised units; None: the constant prior mean ``g_mu0``.
+    g_log_feature_coef : ndarray, shape (p,), or None
+        log c_j of that mean (``g_mu0`` is log c_0).
+    g_mean_coef_cov : ndarray, shape (p + 1, p + 1), or None
+        Laplace covariance of (c_0, .., c_p), propagated into g's posterior variance.
+    g_feature_names : tuple of str
+        Names of the features (``dq1``, ...).
+    noise_model_name : str or None
+        The noise model (:mod:`microctl.gp.noise_models`) that built g's prior mean; None (a
+        model built in memory, or a file of format 1 or 2 written before the name was stored):
+        ``"physical"`` when there are features, else ``"hgp"``.
+
+    Every field is declared once with its storage role (:meth:`stored`); the model file
+    (:mod:`microctl.gp.modelfile`) derives its arrays from them.
+    """
+
+    x_mean: np.ndarray = _stored("array", shape=("d",))
+    x_scale: np.ndarray = _stored("array", shape=("d",))
+    y_mean: float = _stored("float")
+    y_scale: float = _stored("float")
+    X: np.ndarray = _stored("array")
+    f_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    f_log_signal_var: float = _stored("float", log=True)
+    f_log_bias_var: float | None = _stored("optional_float", log=True)
+    g_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    g_log_signal_var: float = _stored("float", log=True)
+    g_log_bias_var: float | None = _stored("optional_float", log=True)
+    g_mu0: float = _stored("float", log=True)
+    log_lambda: np.ndarray = _stored("array", shape=("n",), log=True)
+    f_alpha: np.ndarray = _stored("array", shape=("n",))
+    f_chol: np.ndarray = _stored("array", shape=("n", "n"))
+    g_beta: np.ndarray = _stored("array", shape=("n",))
+    g_chol: np.ndarray = _stored("array", shape=("n", "n"))
+    bound: float = _stored("float")
+    training_hash: str = _stored("meta")
+    geometry_hash: str | None = _stored("meta", default=None)
+    x_names: tuple[str, ...] = _stored("meta", default=())
+    y_name: str = _stored("meta", default="")
+    info: dict = _stored("meta", default_factory=dict)
+    f_log_linear_vars: np.ndarray | None = _stored("optional_array", shape=("d",), log=True, default=None)
+    g_feature_matrix: np.ndarray | None = _stored("optional_array", shape=("p", "d"), default=None)
+    g_feature_offset: np.ndarray | None = _stored("optional_array", shape=("p",), default=None)
+    g_log_feature_coef: np.ndarray | None = _stored("optional_array", shape=("p",), log=True, default=None)
+    g_mean_coef_cov: np.ndarray | None = _stored("optional_array", shape=("p+1", "p+1"), default=None)
+    g_feature_names: tuple[str, ...] = _stored("meta", default=())
+    noise_model_name: str | None = _stored("meta", default=None)
+
+    @classmethod
+    def stored(cls, role: str) -> tuple[str, ...]:
+        """Names of the fields with storage role ``role`` (``array``, ``float``, ``optional_float``,
+        ``optional_array``, ``meta``), in declaration order: the model file's layout."""
+        return tuple(f.name for f in fields(cls) if f.metadata.get("store") == role)
+
+    @classmethod
+    def shapes(cls) -> dict[str, tuple[str, ...]]:
+        """The stored arrays' shapes in the dimensions ``n``, ``d``, ``p``, ``p+1`` (see :func:`_stored`)."""
+        return {f.name: f.metadata["shape"] for f in fields(cls) if f.metadata.get("shape") is not None}
+
+    @classmethod
+    def log_parameters(cls) -> tuple[str, ...]:
+        """The fields holding log-parameters (log variances, log lengthscales, mu0, log Lambda)."""
+        return tuple(f.name for f in fields(cls) if f.metadata.get("log"))
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of input dimensions d."""
+        return int(self.X.shape[1])
+
+    @property
+    def f_kernel(self) -> Kernel:
+        """The kernel of f (:class:`~microctl.gp.kernels.Kernel`)."""
+        return Kernel(self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var, self.f_log_linear_vars)
+
+    @property
+    def g_kernel(self) -> Kernel:
+        """The kernel of g."""
+        return Kernel(self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var)
+
+    @property
+    def g_prior_mean(self) -> LogVarianceMean:
+        """The prior mean of g, as its noise model builds it (constant ``g_mu0``, or
+        :mod:`microctl.gp.noise_prior` eq. 1)."""
+        return noise_model_class(self.noise_model)().prior_mean(self)
+
+    @property
+    def g_prior_mean_with_uncertainty(self) -> LogVarianceMean:
+        """g's prior mean carrying its parameters' covariance whether or not the model propagates
+        it into g's variance (from ``info["noise_parameters"]``): for questions of evidence (is a
+        pose credibly quieter, where is the noise model least certain), not for the objective."""
+        gm = self.g_prior_mean
+        params = self.info.get("noise_parameters") or {}
+        if gm.coef_cov is not None or self.g_feature_matrix is None or "c_cov" not in params:
+            return gm
+        return replace(gm, coef_cov=np.asarray(params["c_cov"], dtype=float))
+
+    @property
+    def g_gp_var_negligible(self) -> bool:
+        """g's GP part has prior variance <= :data:`~microctl.gp.posterior.G_GP_VAR_NEGLIGIBLE`
+        (its variance is then that bound)."""
+        return self.posterior.g_gp_var_negligible
+
+    @property
+    def noise_model(self) -> str:
+        """Name of the noise model (:mod:`microctl.gp.noise_models`): ``noise_model_name``, or for
+        a model without one ``"physical"`` when g has a parametric prior mean, else ``"hgp"``."""
+        if self.noise_model_name is not None:
+            return self.noise_model_name
+        return "physical" if self.g_feature_matrix is not None else "hgp"
+
+    @cached_property
+    def posterior(self) -> Posterior:
+        """The posterior of f and g (:class:`~microctl.gp.posterior.Posterior`), built once."""
+        return Posterior(self)
+
+    def _check_X(self, X: Any) -> np.ndarray:
+        X = as_float_array(X, "X")
+        d = self.n_inputs
+        if X.ndim == 1 and d == 1:
+            X = X[:, None]
+        if X.ndim != 2 or X.shape[1] != d:
+            raise DataError(f"X has shape {X.shape}; this model expects shape (m, {d})")
+        check_finite(X, "X")
+        return X
+
+    def predict(self, X: Any) -> VHGPRPrediction:
+        """Predictive distribution at the rows of ``X`` ([N prediction], :class:`Posterior`).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d), original units
+
+        Returns
+        -------
+        VHGPRPrediction
+            All fields of shape (m,), in original units of y.
+        """
+        X = self._check_X(X)
+        xs = (X - self.x_mean) / self.x_scale
+        a, c2, mu, s2 = self.posterior.predict_std(xs)
+        np.maximum(c2, 0.0, out=c2)
+        np.maximum(s2, 0.0, out=s2)
+        f_mean = self.y_mean + self.y_scale * a
+        f_var = self.y_scale**2 * c2
+        g_mean = mu + 2.0 * math.log(self.y_scale)
+        g_var = s2
+        y_var = f_var + np.exp(g_mean + 0.5 * g_var)
+        return VHGPRPrediction(f_mean=f_mean, f_var=f_var, g_mean=g_mean, g_var=g_var,
+                               y_mean=f_mean.copy(), y_var=y_var)
+
+    def nlpd(self, X: Any, y: Any) -> float:
+        """Mean negative log predictive density (nats) under the Gaussian N(y_mean, y_var).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        y : array_like, shape (m,)
+        """
+        X = self._check_X(X)
+        y = as_float_array(y, "y")
+        if y.ndim != 1 or y.shape[0] != X.shape[0]:
+            raise DataError(f"y has shape {y.shape}; expected ({X.shape[0]},) to match X")
+        check_finite(y, "y")
+        p = self.predict(X)
+        return float(np.mean(0.5 * (LOG_2PI + np.log(p.y_var)) + 0.5 * (y - p.y_mean) ** 2 / p.y_var))
+
+    # ----------------------------------------------------------------------- persistence
+
+    def save(self, path: str | Path) -> None:
+        """Write the model to a ``.npz`` file (:func:`microctl.gp.modelfile.write_model`).
+
+        Raises
+        ------
+        DataError
+            If the file cannot be written.
+        """
+        write_model(self, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "FittedVHGPR":
+        """Read a model written by :meth:`save` (:func:`microctl.gp.modelfile.read_model`).
+
+        Raises
+        ------
+        DataError
+            Naming the file: unreadable, not an ``.npz``, unknown format version, missing or
+            malformed arrays, numbers no fit can produce.
+        """
+        return read_model(cls, path)

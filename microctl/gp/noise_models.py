@@ -1,0 +1,118 @@
+"""Noise models of the VHGPR: how g's prior mean is built from the noise features, by name.
+
+A noise model is one class (a subclass of :class:`NoiseModel` decorated with
+:func:`register_noise_model`) that knows
+
+- its ``name`` (what ``microctl train --noise-model`` and the model file say);
+- whether it uses noise features (:class:`~microctl.gp.noise_prior.NoiseFeatures`, the
+  linear maps ``z_j = a_j . x + b_j``) and how it turns them into the features ``phi_j =
+  transform(z_j)`` of g's prior mean ``m(x) = log(c_0 + sum_j c_j phi_j(x))``
+  (:mod:`microctl.gp.noise_prior` eq. 1), for the trainer (:meth:`NoiseModel.design`) and for
+  prediction (:meth:`NoiseModel.prior_mean`, NumPy and CasADi);
+- which model-file arrays it stores (:attr:`NoiseModel.stored_arrays`); the model file
+  (:mod:`microctl.gp.modelfile`) stores its name explicitly.
+
+Two are registered here: ``physical`` (``phi = z^2``: a floor plus per-actuator stick-slip
+whose standard deviation grows with the step, the default of :mod:`microctl.models.training`)
+and ``hgp`` (the paper's constant prior mean ``mu0``, no features).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from microctl.gp.noise_prior import LogVarianceMean, square
+
+__all__ = ["FEATURE_ARRAYS", "NoiseModel", "PhysicalNoise", "ConstantNoise", "register_noise_model",
+           "noise_model_class", "noise_model_names"]
+
+#: The feature arrays of a model file (fields of :class:`~microctl.gp.fitted.FittedVHGPR`).
+FEATURE_ARRAYS = ("g_feature_matrix", "g_feature_offset", "g_log_feature_coef")
+
+_REGISTRY: dict[str, type["NoiseModel"]] = {}
+
+
+class NoiseModel:
+    """Base class of the noise models (see the module docstring).
+
+    A subclass with features sets ``name`` and overrides :meth:`transform`; one without
+    features sets ``uses_features = False`` and ``stored_arrays = ()``.
+    """
+
+    #: Name in settings, on the command line and in the model file.
+    name: ClassVar[str] = ""
+    #: Whether g's prior mean has features (then the trainer needs ``noise_features``).
+    uses_features: ClassVar[bool] = True
+    #: Model-file arrays of g's prior mean this model stores (all of them present together).
+    stored_arrays: ClassVar[tuple[str, ...]] = FEATURE_ARRAYS
+
+    @staticmethod
+    def transform(z: Any) -> Any:
+        """``phi = transform(z)`` elementwise, for a NumPy array or a CasADi expression."""
+        raise NotImplementedError
+
+    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray) -> np.ndarray:
+        """The features ``phi`` at the standardised training inputs, shape (n, p).
+
+        Parameters
+        ----------
+        Xs : ndarray, shape (n, d)
+        As, bs : ndarray, shapes (p, d) and (p,)
+            The standardised linear maps (:meth:`~microctl.gp.noise_prior.NoiseFeatures.standardised`).
+        """
+        lin = Xs @ As.T + bs
+        return self.transform(lin)
+
+    def prior_mean(self, model: Any) -> LogVarianceMean:
+        """g's prior mean from the fields of a fitted model (a :class:`~microctl.gp.fitted.FittedVHGPR`)."""
+        return LogVarianceMean(model.g_feature_matrix, model.g_feature_offset, model.g_mu0, model.g_log_feature_coef,
+                               model.g_mean_coef_cov, transform=self.transform)
+
+
+def register_noise_model(cls: type[NoiseModel]) -> type[NoiseModel]:
+    """Class decorator: make ``cls`` available by its ``name`` (a name can be registered once)."""
+    if not cls.name:
+        raise ValueError(f"noise model {cls.__name__} has no name")
+    if _REGISTRY.get(cls.name, cls) is not cls:
+        raise ValueError(f"noise model name {cls.name!r} is already registered ({_REGISTRY[cls.name].__name__})")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def noise_model_class(name: str) -> type[NoiseModel]:
+    """The registered noise model called ``name``; KeyError (with the known names) otherwise."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown noise model {name!r}; known: {', '.join(noise_model_names())}") from None
+
+
+def noise_model_names() -> tuple[str, ...]:
+    """Names of the registered noise models, in registration order."""
+    return tuple(_REGISTRY)
+
+
+@register_noise_model
+class PhysicalNoise(NoiseModel):
+    """``m(x) = log(c_0 + sum_j c_j z_j^2)``: a floor plus stick-slip (``noise_prior`` eq. 1)."""
+
+    name = "physical"
+    transform = staticmethod(square)
+
+
+@register_noise_model
+class ConstantNoise(NoiseModel):
+    """The paper's ``g ~ GP(mu0, K_g)``: a constant prior mean, no features."""
+
+    name = "hgp"
+    uses_features = False
+    stored_arrays = ()
+
+    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray) -> np.ndarray:
+        raise ValueError("the constant noise model has no features")
+
+    def prior_mean(self, model: Any) -> LogVarianceMean:
+        d = int(model.X.shape[1])
+        return LogVarianceMean(np.zeros((0, d)), np.zeros(0), model.g_mu0, np.zeros(0), model.g_mean_coef_cov)

@@ -1,0 +1,446 @@
+"""The VHGPR trainer: settings, the fit (L-BFGS-B on the MV bound) and its restarts.
+
+:class:`VHGPR` holds the settings and :meth:`VHGPR.fit` maximises the bound ``F`` of
+:mod:`microctl.gp.bound` with analytic gradients (over log Lambda, log kernel
+hyperparameters and g's prior mean log c), starting from a homoscedastic GP
+(:mod:`microctl.gp.homoscedastic`); it returns a frozen :class:`~microctl.gp.fitted.FittedVHGPR`.
+Inputs and outputs are standardised (``notes/vhgpr.md``, cited as [N]).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize
+
+from microctl.errors import ConfigError, DataError, MicroctlError
+from microctl.gp.arrays import freeze, validate_training
+from microctl.gp.bound import BOUNDS, Layout, mean_coef_covariance, mv_bound
+from microctl.gp.fitted import FittedVHGPR
+from microctl.gp.homoscedastic import fit_homoscedastic, init_mean_coef
+from microctl.gp.kernels import KernelSpec
+from microctl.gp.noise_models import NoiseModel, noise_model_class
+from microctl.gp.noise_prior import NoiseFeatures
+from microctl.util.blas import single_thread_blas
+
+__all__ = ["VHGPR", "default_max_iter"]
+
+
+def default_max_iter(n: int) -> int:
+    """Iterations per run when ``max_iter`` is None: 100 up to n = 200, then 100 (200/n)^0.6, at least 25.
+
+    Each iteration costs O(n^3), and with more points fewer iterations are needed: on the
+    synthetic benchmark (scripts/bench_vhgpr.py) the hold-out NLPD changes by < 1e-3 nats
+    after ~40 iterations at n = 500 and is within 0.005 nats of the oracle after 25 at
+    n = 2000, against ~100-150 iterations for the 133-point motorcycle data.  This gives
+    58 at n = 500, 38 at n = 1000 and 25 at n = 2000.
+    """
+    return int(max(25, min(100, round(100 * (200 / n) ** 0.6))))
+
+
+def _noise_model(name: str | None, features: NoiseFeatures | None) -> NoiseModel:
+    """The noise model named ``name`` (None: ``"physical"`` with features, ``"hgp"`` without)."""
+    if name is None:
+        name = "hgp" if features is None else "physical"
+    try:
+        noise = noise_model_class(name)()
+    except KeyError as exc:
+        raise ConfigError(f"VHGPR: {exc.args[0]}") from None
+    if noise.uses_features != (features is not None):
+        raise ConfigError(f"VHGPR: noise model {name!r} {'needs' if noise.uses_features else 'takes no'} "
+                          "noise_features")
+    return noise
+
+
+def _standardise(X: np.ndarray, y: np.ndarray) -> dict:
+    """Training hash and standardisation of (X, y): ``x_mean, x_scale, y_mean, y_scale, Xs, ys``.
+
+    A constant input column keeps ``x_scale = 1``.
+    """
+    training_hash = hashlib.sha256(
+        np.ascontiguousarray(X, dtype=np.float64).tobytes() + np.ascontiguousarray(y, dtype=np.float64).tobytes()
+    ).hexdigest()
+    x_mean = X.mean(axis=0)
+    x_scale = X.std(axis=0)
+    x_scale[x_scale <= 1e-12 * np.maximum(1.0, np.abs(x_mean))] = 1.0  # constant input column
+    y_mean = float(y.mean())
+    y_scale = float(y.std())
+    Xs = (X - x_mean) / x_scale
+    ys = (y - y_mean) / y_scale
+    return {"training_hash": training_hash, "x_mean": x_mean, "x_scale": x_scale, "y_mean": y_mean,
+            "y_scale": y_scale, "Xs": Xs, "ys": ys}
+
+
+# --------------------------------------------------------------------------- the trainer
+
+
+class VHGPR:
+    """Settings of the VHGPR trainer (scikit-learn style); :meth:`fit` returns a :class:`FittedVHGPR`.
+
+    Parameters
+    ----------
+    bias : bool
+        Add a constant (bias) term to both kernels.
+    linear : bool or sequence of int
+        Add a linear part to f's kernel (:mod:`microctl.gp.kernels`): Bayesian linear
+        regression inside the GP, so the mean extrapolates along a fitted trend and its
+        variance includes the trend's uncertainty. The noise model weights every point, so
+        noisy points do not dominate the trend. True: on every input; a sequence: on those
+        input columns (0-based) only.
+    linear_prior_var : float or None
+        None: the linear part's variances are fitted (ARD, log space). A number: the prior
+        variance of every linear coefficient, fixed (standardised units; a large value is
+        the vague-prior limit of R&W 2.7, where the trend is estimated by generalised least
+        squares and no hyperparameter can switch it off).
+    noise_features : NoiseFeatures, optional
+        Features of a parametric prior mean of g (:mod:`microctl.gp.noise_prior` eq. 1), in the
+        units of the inputs and of y. None (default): the paper's constant mu0.
+    noise_model : str, optional
+        Name of the noise model (:mod:`microctl.gp.noise_models`) that turns the features into
+        g's prior mean. None (default): ``"physical"`` with features, ``"hgp"`` without.
+    n_restarts : int
+        Number of optimisation runs in total (>= 1).  The first starts from the
+        homoscedastic GP fit; the others from seeded random perturbations of it.  The run
+        with the largest bound wins; runs that fail numerically are recorded and skipped.
+    max_iter : int or None
+        L-BFGS-B iterations per run (function evaluations are capped at 1.25 times this).
+        None (default): 100 for n <= 200, then 100 (200/n)^0.6 but at least 25 (58 at
+        n = 500, 25 at n = 2000), since each iteration costs O(n^3) and more data need fewer.
+    random_state : int or None
+        Seed of the perturbations and of the initialisation subset (None: fresh entropy).
+    tol : float
+        L-BFGS-B ``ftol`` (relative decrease of the negative bound).
+    max_time : float or None
+        Wall-clock budget in seconds for all runs together; a run that reaches it stops
+        and keeps its best point so far.  None: no budget.
+    se : {"on", "off", "auto"}
+        f's squared-exponential (nonlinear) part. ``"auto"`` (with a linear trend): fit f
+        with and without it and keep it only if it raises the MV bound by more than its
+        d + 1 hyperparameters cost, ``(d + 1)/2 log n`` (the BIC penalty): on data whose
+        mean the trend explains, a free SE part with d lengthscales fits the noise (measured
+        on simulated rigs: 0.5-5.5 nats of bound for 2-3 times the error at the workspace's
+        faces), while a real nonlinear effect (backlash, contact loss) pays hundreds of nats.
+        ``"off"`` needs a linear trend.
+    propagate_noise_parameter_uncertainty : bool
+        Add the Laplace variance of g's parametric prior mean (``noise_prior`` eq. 2) to g's
+        posterior variance. Default False: the covariance is always computed and kept in
+        ``info["noise_parameters"]`` (standard errors), but g's variance is the GP's alone.
+        Measured on 24 simulated rigs (scripts/bench_rigs.py, docs/controller.md): a
+        Gaussian approximation cannot tell a small friction from zero on an actuator the data
+        barely isolate, and the quantile objective then avoids the truly quietest poses.
+    """
+
+    def __init__(
+        self,
+        *,
+        bias: bool = False,
+        linear: bool | tuple[int, ...] = False,
+        linear_prior_var: float | None = None,
+        noise_features: NoiseFeatures | None = None,
+        noise_model: str | None = None,
+        n_restarts: int = 2,
+        max_iter: int | None = None,
+        random_state: int | None = 0,
+        tol: float = 1e-9,
+        max_time: float | None = None,
+        se: str = "on",
+        propagate_noise_parameter_uncertainty: bool = False,
+    ) -> None:
+        if int(n_restarts) != n_restarts or n_restarts < 1:
+            raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
+        if max_iter is not None and (int(max_iter) != max_iter or max_iter < 1):
+            raise ConfigError(f"VHGPR: max_iter must be an integer >= 1, got {max_iter!r}")
+        if not (tol > 0):
+            raise ConfigError(f"VHGPR: tol must be positive, got {tol!r}")
+        if max_time is not None and not (max_time > 0):
+            raise ConfigError(f"VHGPR: max_time must be positive or None, got {max_time!r}")
+        if noise_features is not None and not isinstance(noise_features, NoiseFeatures):
+            raise ConfigError(f"VHGPR: noise_features must be a NoiseFeatures or None, got {type(noise_features).__name__}")
+        if linear_prior_var is not None and not (isinstance(linear_prior_var, (int, float))
+                                                 and math.isfinite(linear_prior_var) and linear_prior_var > 0):
+            raise ConfigError(f"VHGPR: linear_prior_var must be a positive number or None, got {linear_prior_var!r}")
+        if not isinstance(linear, bool):
+            linear = tuple(int(i) for i in linear)
+            if not linear or min(linear) < 0:
+                raise ConfigError(f"VHGPR: linear must be a bool or non-empty input indices, got {linear!r}")
+        if se not in ("on", "off", "auto"):
+            raise ConfigError(f"VHGPR: se must be 'on', 'off' or 'auto', got {se!r}")
+        if se != "on" and linear is False:
+            raise ConfigError(f"VHGPR: se={se!r} needs a linear trend (linear=True or input indices); "
+                              "without it f would be a constant")
+        self.se = se
+        self.propagate = bool(propagate_noise_parameter_uncertainty)
+        self.bias = bool(bias)
+        self.linear = linear
+        self.linear_prior_var = None if linear_prior_var is None else float(linear_prior_var)
+        self.noise_features = noise_features
+        self.noise = _noise_model(noise_model, noise_features)
+        self.n_restarts = int(n_restarts)
+        self.max_iter = None if max_iter is None else int(max_iter)
+        self.random_state = random_state
+        self.tol = float(tol)
+        self.max_time = max_time
+
+    def __repr__(self) -> str:
+        nf = None if self.noise_features is None else list(self.noise_features.names)
+        return (f"VHGPR(bias={self.bias}, linear={self.linear}, linear_prior_var={self.linear_prior_var}, se={self.se!r}, "
+                f"noise_features={nf}, n_restarts={self.n_restarts}, "
+                f"max_iter={self.max_iter}, random_state={self.random_state}, tol={self.tol}, max_time={self.max_time})")
+
+    def fit(self, X: Any, y: Any) -> FittedVHGPR:
+        """Maximise the MV bound on (X, y).
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)  (a 1-D array is taken as one input column)
+        y : array_like, shape (n,)
+
+        Returns
+        -------
+        FittedVHGPR
+
+        Raises
+        ------
+        DataError
+            Non-finite values, wrong shapes, n < 2, mismatched lengths, constant y, noise
+            features of the wrong width.
+        MicroctlError
+            Every optimisation run failed numerically.
+        """
+        t0 = time.perf_counter()
+        X, y = validate_training(X, y)
+        nf = self.noise_features
+        if not isinstance(self.linear, bool) and max(self.linear) >= X.shape[1]:
+            raise DataError(f"linear trend on input column {max(self.linear)}; X has {X.shape[1]} columns")
+        if nf is not None and np.asarray(nf.matrix).shape[1] != X.shape[1]:
+            raise DataError(f"noise features act on {np.asarray(nf.matrix).shape[1]} inputs; X has {X.shape[1]} columns")
+        with single_thread_blas():
+            return self._fit(X, y, t0)
+
+    def _fit(self, X: np.ndarray, y: np.ndarray, t0: float) -> FittedVHGPR:
+        n, d = X.shape
+        data = _standardise(X, y)
+        Xs, ys = data["Xs"], data["ys"]
+        nf = self.noise_features
+        noise = self.noise
+        Phi = As = bs = None
+        if nf is not None and nf.p > 0:
+            As, bs = nf.standardised(data["x_mean"], data["x_scale"], data["y_scale"])
+            Phi = noise.design(Xs, As, bs)
+        else:
+            noise = noise_model_class("hgp")()  # no features: the constant prior mean
+
+        rng = np.random.default_rng(self.random_state)
+        # a linear trend is affine: f's kernel gets the constant (bias) term with it
+        f_spec = KernelSpec(d=d, bias=self.bias or self.linear is not False, linear=self.linear is not False)
+        g_spec = KernelSpec(d=d, bias=self.bias)
+        lin_bounds = self._linear_bounds(d)
+        p = 0 if Phi is None else Phi.shape[1]
+        gp, loo, used = fit_homoscedastic(Xs, ys, f_spec, rng, lin_bounds)
+        kern = gp[:-1]
+        # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
+        # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
+        # g's kernel: f's lengthscales, unit signal variance.
+        g_kern = np.concatenate([kern[:d], [0.0], [-4.0] if self.bias else []])
+        mean0 = init_mean_coef(loo, None if Phi is None else Phi[used], float(gp[-1]))
+        x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, mean0])
+
+        max_iter = self.max_iter if self.max_iter is not None else default_max_iter(n)
+        deadline = None if self.max_time is None else t0 + float(self.max_time)
+        layout, best, runs, selection = self._fit_variants(x_init, Xs, ys, f_spec, g_spec, p, lin_bounds, rng,
+                                                           deadline, max_iter, Phi)
+        theta = best[1]
+        F, _, state = mv_bound(theta, Xs, ys, layout, want_grad=False, want_state=True, Phi=Phi)
+        log_c = theta[layout.mean_slice]
+        coef_cov = mean_coef_covariance(state, log_c, Phi) if Phi is not None else None
+        info = self._info(state, runs, gp, kern, selection, coef_cov, log_c, max_iter, t0)
+        kf = f_spec.unpack(theta[layout.f_slice])
+        kg = g_spec.unpack(theta[layout.g_slice])
+        arrays = {
+            "x_mean": data["x_mean"], "x_scale": data["x_scale"], "X": Xs,
+            "f_log_lengthscales": np.array(kf.log_lengthscales), "g_log_lengthscales": np.array(kg.log_lengthscales),
+            "log_lambda": theta[:n].copy(), "f_alpha": state["f_alpha"], "f_chol": state["f_chol"],
+            "g_beta": state["g_beta"], "g_chol": state["g_chol"],
+        }
+        optional = {
+            "f_log_linear_vars": None if kf.log_linear_vars is None else np.array(kf.log_linear_vars),
+            "g_feature_matrix": As, "g_feature_offset": bs,
+            "g_log_feature_coef": None if Phi is None else np.array(log_c[1:]),
+            "g_mean_coef_cov": coef_cov if self.propagate else None,
+        }
+        for a in list(arrays.values()) + [v for v in optional.values() if v is not None]:
+            freeze(a)
+        return FittedVHGPR(
+            **arrays, **optional,
+            y_mean=data["y_mean"], y_scale=data["y_scale"],
+            f_log_signal_var=kf.log_signal_var, f_log_bias_var=kf.log_bias_var,
+            g_log_signal_var=kg.log_signal_var, g_log_bias_var=kg.log_bias_var,
+            g_mu0=float(log_c[0]), bound=float(F), training_hash=data["training_hash"], info=info,
+            g_feature_names=() if nf is None else tuple(nf.names), noise_model_name=noise.name,
+        )
+
+    def _fit_variants(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, f_spec: KernelSpec,
+                      g_spec: KernelSpec, p: int, lin_bounds: tuple[tuple[float, float], ...] | None,
+                      rng: np.random.Generator, deadline: float | None, max_iter: int, Phi: np.ndarray | None
+                      ) -> tuple[Layout, tuple[float, np.ndarray], list[dict], dict | None]:
+        """Optimise with f's SE part on, off, or both (``se="auto"``, BIC selection).
+
+        Returns the winning layout, (bound, theta), every run, and the selection record (None
+        unless ``"auto"``).
+        """
+        n, d = Xs.shape
+        variants = {"on": (False,), "off": (True,), "auto": (True, False)}[self.se]
+        fits = []
+        for se_off in variants:
+            layout = Layout(n=n, f=f_spec, g=g_spec, p=p, linear_bounds=lin_bounds, se_off=se_off)
+            best, runs = self._optimise(x_init, Xs, ys, layout, rng, deadline, max_iter, Phi)
+            fits.append((layout, best, runs))
+        selection = None
+        if len(fits) == 2:  # "auto": the SE part must pay for its d + 1 hyperparameters (BIC)
+            penalty = 0.5 * (d + 1) * math.log(n)
+            gain = fits[1][1][0] - fits[0][1][0]
+            selection = {"bound_affine": fits[0][1][0], "bound_with_se": fits[1][1][0], "penalty": penalty,
+                         "kept_se": bool(gain > penalty)}
+            layout, best, runs = fits[1] if gain > penalty else fits[0]
+            runs = fits[0][2] + fits[1][2]
+        else:
+            layout, best, runs = fits[0]
+        return layout, best, runs, selection
+
+    def _info(self, state: dict, runs: list[dict], gp: np.ndarray, kern: np.ndarray, selection: dict | None,
+              coef_cov: np.ndarray | None, log_c: np.ndarray, max_iter: int, t0: float) -> dict:
+        """The fit's diagnostics record (``FittedVHGPR.info``)."""
+        nf = self.noise_features
+        noise_parameters = None
+        if coef_cov is not None:
+            noise_parameters = {"names": ["constant"] + list(nf.names), "c": np.exp(log_c).tolist(),
+                                "c_std": np.sqrt(np.diag(coef_cov)).tolist(), "c_cov": coef_cov.tolist(),
+                                "units": "standardised (y_scale^2)", "propagated": self.propagate}
+        return {
+            "jitter": float(state["jitter"]),
+            "restarts_tried": len(runs),
+            "restarts_failed": sum(r["status"] == "failed" for r in runs),
+            "runs": runs,
+            "iterations": int(sum(r.get("iterations", 0) for r in runs)),
+            "evaluations": int(sum(r.get("evaluations", 0) for r in runs)),
+            "homoscedastic_init": {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]},
+            "se_selection": selection,
+            "noise_parameters": noise_parameters,
+            "time_s": time.perf_counter() - t0,
+            "settings": {"bias": self.bias, "linear": self.linear, "linear_prior_var": self.linear_prior_var,
+                         "se": self.se, "propagate_noise_parameter_uncertainty": self.propagate,
+                         "n_restarts": self.n_restarts,
+                         "max_iter": max_iter, "random_state": self.random_state, "tol": self.tol,
+                         "max_time": self.max_time,
+                         "noise_features": None if nf is None else list(nf.names)},
+        }
+
+    def _optimise(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: Layout,
+                  rng: np.random.Generator, deadline: float | None, max_iter: int, Phi: np.ndarray | None
+                  ) -> tuple[tuple[float, np.ndarray], list[dict]]:
+        """``n_restarts`` L-BFGS-B runs from ``x_init`` (then perturbed); the best (bound, theta) and the runs."""
+        n = layout.n
+        lo, hi = (np.array(b) for b in zip(*layout.bounds()))
+        x_init = np.clip(x_init, lo, hi)
+        runs: list[dict] = []
+        best: tuple[float, np.ndarray] | None = None
+        for k in range(self.n_restarts):
+            if k == 0:
+                x0 = x_init
+            else:
+                x0 = x_init.copy()
+                x0[:n] += 0.1 * rng.standard_normal(n)
+                x0[n:] += 0.5 * rng.standard_normal(x0.size - n)
+                x0 = np.clip(x0, lo, hi)
+            if deadline is not None and time.perf_counter() >= deadline and best is not None:
+                runs.append({"start": k, "status": "skipped", "reason": "time budget exhausted"})
+                continue
+            run = self._run(x0, Xs, ys, layout, deadline, max_iter, Phi)
+            run["start"] = k
+            run["se"] = not layout.se_off
+            x_run = run.pop("x", None)
+            runs.append(run)
+            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
+                best = (run["bound"], x_run)
+        if best is None:
+            reasons = "; ".join(f"run {r['start']}: {r.get('reason', r['status'])}" for r in runs)
+            raise MicroctlError(f"VHGPR: every optimisation run failed ({reasons})")
+        return best, runs
+
+    def _linear_bounds(self, d: int) -> tuple[tuple[float, float], ...] | None:
+        """Box bounds of f's [log bias var, log linear variances (d)]: free, fixed at the prior,
+        or off (an input without a trend)."""
+        if self.linear is False:
+            return None
+        on = set(range(d)) if self.linear is True else set(self.linear)
+        free = BOUNDS["log_linear_var"]
+        fixed = free if self.linear_prior_var is None else (math.log(self.linear_prior_var),) * 2
+        off = (free[0], free[0])
+        return (fixed,) + tuple(fixed if i in on else off for i in range(d))
+
+    def _run(self, x0: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: Layout, deadline: float | None,
+             max_iter: int, Phi: np.ndarray | None = None) -> dict:
+        """One L-BFGS-B run from ``x0``; returns a record (status, bound, iterations, x)."""
+        t0 = time.perf_counter()
+        n = layout.n
+        best: list[Any] = [np.inf, None]  # lowest negative bound seen, and where
+        counter = {"evals": 0, "failed_evals": 0}
+        eval_times: list[float] = []
+
+        class _OutOfTime(Exception):
+            pass
+
+        def fun(theta: np.ndarray) -> tuple[float, np.ndarray]:
+            if deadline is not None and time.perf_counter() > deadline and best[1] is not None:
+                raise _OutOfTime
+            counter["evals"] += 1
+            te = time.perf_counter()
+            try:
+                with np.errstate(all="ignore"):
+                    F, g, st = mv_bound(theta, Xs, ys, layout, want_state=False, Phi=Phi)
+            except np.linalg.LinAlgError:
+                F, g = np.nan, None
+            if not np.isfinite(F) or g is None or not np.all(np.isfinite(g)):
+                # A numerically impossible point: report a huge value so the line search backs off.
+                counter["failed_evals"] += 1
+                return 1e25, np.zeros_like(theta)
+            eval_times.append(time.perf_counter() - te)
+            if -F < best[0]:
+                best[0], best[1] = -F, theta.copy()
+            # Minimise -F/n: per-point scaling keeps L-BFGS-B's first (unit, projected) step
+            # small whatever n is, and makes ``tol`` mean the same for every n.
+            return -F / n, -g / n
+
+        record: dict[str, Any] = {}
+        try:
+            res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=layout.bounds(),
+                           options={"maxiter": max_iter, "maxfun": int(1.25 * max_iter) + 10,
+                                    "ftol": self.tol, "gtol": 1e-6})
+            record.update(iterations=int(res.nit), message=str(res.message), converged=bool(res.success))
+        except _OutOfTime:
+            record.update(iterations=None, message="stopped: time budget reached", converged=False)
+        record.update(evaluations=counter["evals"], failed_evaluations=counter["failed_evals"],
+                      time_s=time.perf_counter() - t0,
+                      eval_time_median_s=float(np.median(eval_times)) if eval_times else None,
+                      eval_time_max_s=float(np.max(eval_times)) if eval_times else None)
+        if best[1] is None:
+            record.update(status="failed", reason="no finite bound at any evaluated point")
+            return record
+        # Re-evaluate the winner without error suppression, to make sure it is sound.
+        try:
+            F, _, _ = mv_bound(best[1], Xs, ys, layout, want_grad=False, Phi=Phi)
+        except np.linalg.LinAlgError as exc:
+            record.update(status="failed", reason=f"final point not positive definite: {exc}")
+            return record
+        if not np.isfinite(F):
+            record.update(status="failed", reason="non-finite bound at the final point")
+            return record
+        if record["iterations"] is None:
+            record["iterations"] = counter["evals"]
+        record.update(status="ok", bound=float(F), x=best[1])
+        return record
+
