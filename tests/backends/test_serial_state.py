@@ -143,6 +143,7 @@ def test_err_checked_on_every_controller_that_moved(faulty):
         assert "; also controller 'driver2'" in msg
 
 
+@pytest.mark.slow
 def test_time_s_over_a_shared_serial_backend_is_wall_time(tmp_path):
     """experiment: trials share one serial stage; time_s must not add its clock again per trial."""
     cfg = serial_config()
@@ -166,6 +167,7 @@ def test_time_s_over_a_shared_serial_backend_is_wall_time(tmp_path):
     assert last_move_from - connected <= log.time_s[-1] <= last_move_to - before_connect
 
 
+@pytest.mark.slow
 def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
     """``collect`` through the serial backend says where the rig stood, and how the gauge was tared."""
     from microctl.cli import main
