@@ -216,3 +216,20 @@ def test_modules_at_most_600_lines():
 @pytest.mark.xfail(strict=False, reason=_STILL_SPLITTING + "; ".join(_FUNCTIONS_OVER))
 def test_functions_at_most_80_lines():
     assert not _FUNCTIONS_OVER, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(_FUNCTIONS_OVER)
+
+
+def _is_slow(decorators: list[ast.expr]) -> bool:
+    return any(ast.unparse(d) == "pytest.mark.slow" for d in decorators)
+
+
+def test_every_test_folder_keeps_a_fast_test():
+    """``pytest -m "not slow"`` (README's fast loop) still runs a test of every package's folder."""
+    folders: dict[Path, bool] = {}
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        module_slow = any(isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "pytestmark" for t in n.targets)
+                          and "pytest.mark.slow" in ast.unparse(n.value) for n in tree.body)
+        fast = not module_slow and any(isinstance(n, ast.FunctionDef) and n.name.startswith("test_")
+                                       and not _is_slow(n.decorator_list) for n in tree.body)
+        folders[path.parent] = folders.get(path.parent, False) or fast
+    assert len(folders) > 1 and all(folders.values()), [str(f.relative_to(ROOT)) for f, ok in folders.items() if not ok]

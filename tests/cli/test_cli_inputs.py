@@ -150,6 +150,7 @@ def test_diagnose_refuses_to_overwrite_its_config(log40, tmp_path, capsys):
     assert cfg.read_bytes() == SIM.read_bytes()
 
 
+@pytest.mark.slow
 def test_diagnose_outputs_are_listed(log40, tmp_path):
     """The list the input guard uses covers every file diagnose writes."""
     out = tmp_path / "d"
