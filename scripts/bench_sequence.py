@@ -132,7 +132,7 @@ def run_rig(seed: int, moves: int, large: float) -> dict:
         out["sequence"] = {"var": var, "q": q, "plan_ms": plan_ms}
     # the sequence oracle on the truth (the truth depends on the previous state through q only)
     with SimulatedStage(cfg, seed=seed + 20_000) as st:
-        o = OracleSequenceController(afm, st).plan(targets, st.state)
+        o = OracleSequenceController(afm, st).plan(targets, st.state).steps
         out["oracle_seq"] = {"var": [r.objective for r in o], "q": [r.q.round(3).tolist() for r in o]}
     g, sq, o = (np.array(out[k]["var"]) for k in ("greedy", "sequence", "oracle_seq"))
     out["forces_large_move"] = bool(np.any(g > large * o))

@@ -100,6 +100,7 @@ def tiny_results(page: str, tmp_path_factory) -> dict:
     return _TINY[page]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", sorted(PAGES))
 def test_experiment_pages_match_the_code(page, tmp_path_factory):
     text = _page(page)

@@ -3,19 +3,14 @@
 An objective knows which EAFM quantities it needs (so the NLP graph holds only those),
 builds its CasADi expression for IPOPT, and evaluates itself in NumPy at many candidate
 poses for the controller's global seeding. :class:`~microctl.control.controller.EAFMController`
-takes any object with this interface (:class:`Objective`).
+takes any object with this interface (:class:`Objective`); sequence control
+(:class:`~microctl.control.sequence.SequenceController`) takes one that is a monotone function
+of a per-move quantity r (:class:`PerMoveObjective`), which it sums or maximises over the moves.
 
-The paper's objective (eq. 4) is ``1 - exp(-r_e(s, u))`` with ``r_e`` the noise variance.
-The learned log noise variance g has a posterior ``N(mu_g, s_g^2)`` (VHGPR), so ``r_e =
-exp(g)`` is log-normal; :class:`NoiseVariance` offers three summaries of it:
-
-- ``noise_quantile`` (default): its upper quantile ``exp(mu_g + kappa s_g)`` (kappa = 1.645,
-  the 95 % quantile). A pose is then preferred for low noise only where the data support
-  it: where g is uncertain (few training moves, an actuator whose friction the data barely
-  determined) its upper quantile is high, so eq. 4 cannot exploit an under-predicted noise
-  there (the optimiser's curse: the minimum of noisy estimates is biased low).
-- ``noise_mean``: ``exp(mu_g + s_g^2 / 2)``, the expected noise variance.
-- ``noise_median``: ``exp(mu_g)``; ignores the uncertainty (O(n) per evaluation).
+The paper's objective (eq. 4) is ``1 - exp(-r_e(s, u))`` with ``r_e`` a summary of the
+log-normal noise variance (:class:`NoiseVariance`); the summaries (``noise_quantile``,
+``noise_mean``, ``noise_median``) are the registered classes of
+:mod:`microctl.control.noise_summaries`.
 
 ``epistemic=True`` adds f's posterior variance (the uncertainty of the mean correction) to
 ``r_e``, i.e. the expected squared error of the pose about the target.
@@ -29,17 +24,15 @@ from typing import Protocol, runtime_checkable
 import casadi as ca
 import numpy as np
 
+from microctl.control.noise_summaries import R_E_SUMMARIES, NoiseSummary
 from microctl.models.eafm import EAFM
 from microctl.util.fields import setting, validate_settings
 
-__all__ = ["R_E_SETTINGS", "Objective", "NoiseVariance", "SmallestMotion"]
+__all__ = ["Objective", "PerMoveObjective", "NoiseVariance", "SmallestMotion", "CHEAP_SEEDING_WORK"]
 
-#: Summaries of the log-normal noise variance usable as r_e in eq. 4.
-R_E_SETTINGS = ("noise_quantile", "noise_mean", "noise_median")
-
-#: Above this much work (candidates x training points^2), seeding scores ``noise_quantile``
-#: and ``noise_mean`` with g's parameter variance only (O(m n)), leaving the GP's O(m n^2)
-#: variance term to IPOPT's polish of the best seeds (at the default 15 x 15 grid: n > ~520).
+#: Above this much work (candidates x training points^2), seeding scores the summaries that use
+#: g's variance with its parameter variance only (O(m n)), leaving the GP's O(m n^2) variance
+#: term to IPOPT's polish of the best seeds (at the default 15 x 15 grid: n > ~520).
 CHEAP_SEEDING_WORK = 6.0e7
 
 
@@ -66,6 +59,24 @@ class Objective(Protocol):
         ...
 
 
+@runtime_checkable
+class PerMoveObjective(Objective, Protocol):
+    """An :class:`Objective` that is a monotone function of a per-move quantity r (µm², >= 0):
+    what sequence control sums or maximises over the moves (eq. 4 is ``1 - exp(-r)``)."""
+
+    def r_mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
+        """r as a CasADi expression (the per-move quantity of the sequence NLP)."""
+        ...
+
+    def r_np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+        """r at the rows of U (shape (m, n_p)) from state s, shape (m,)."""
+        ...
+
+    def r_pairs(self, eafm: EAFM, S: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
+        """r of a move to each pose U[j] from each state S[i], shape (m1, m2) (row i = ``r_np`` from S[i])."""
+        ...
+
+
 @dataclass(frozen=True)
 class NoiseVariance:
     """eq. 4: ``1 - exp(-r_e)`` with r_e a summary of the predicted noise variance (module docstring).
@@ -73,14 +84,14 @@ class NoiseVariance:
     Attributes
     ----------
     r_e : str
-        One of :data:`R_E_SETTINGS`.
+        A name registered in :data:`~microctl.control.noise_summaries.R_E_SUMMARIES`.
     kappa : float
-        Standard normal quantile of ``noise_quantile`` (1.645: 95 %).
+        Standard normal quantile of the summaries that use one (``noise_quantile``; 1.645: 95 %).
     epistemic : bool
         Add f's posterior variance to r_e.
     """
 
-    r_e: str = setting("noise_quantile", choices=R_E_SETTINGS)
+    r_e: str = R_E_SUMMARIES.setting("noise_quantile")
     kappa: float = setting(1.645, lo=0.0, hi=5.0)
     epistemic: bool = setting(False)
 
@@ -88,25 +99,22 @@ class NoiseVariance:
         validate_settings(self, "objective setting")
 
     @property
+    def summary(self) -> NoiseSummary:
+        """The r_e summary object named by ``r_e``."""
+        return R_E_SUMMARIES[self.r_e]()
+
+    @property
     def name(self) -> str:
         return self.r_e + ("+epistemic" if self.epistemic else "")
 
     @property
     def needs(self) -> tuple[str, ...]:
-        return ("t_mean", "g_mean") + (("g_var",) if self.r_e != "noise_median" else ()) + (
+        return ("t_mean", "g_mean") + (("g_var",) if self.summary.needs_g_var else ()) + (
             ("f_var",) if self.epistemic else ())
-
-    def log_r(self, g_mean, g_var, sqrt):
-        """log of the noise summary from g's mean and variance (NumPy or CasADi)."""
-        if self.r_e == "noise_median":
-            return g_mean
-        if self.r_e == "noise_mean":
-            return g_mean + 0.5 * g_var
-        return g_mean + self.kappa * sqrt(g_var + 1e-12)
 
     def r_mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
         """r_e (µm²) as a CasADi expression (the summed quantity of sequence control)."""
-        r = ca.exp(self.log_r(e["g_mean"], e.get("g_var"), ca.sqrt))
+        r = self.summary.mx(e["g_mean"], e.get("g_var"), self.kappa)
         if self.epistemic:
             r = r + e["f_var"]
         return r
@@ -116,12 +124,8 @@ class NoiseVariance:
 
     def r_np(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
         """r_e (µm²) at the rows of U, shape (m,)."""
-        if self.r_e == "noise_median":
-            r = np.exp(eafm.g_mean_np(s, U))  # O(m n): the median needs no variance
-        else:
-            cheap = seeding and U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
-            mean, var = eafm.g_np(s, U, with_gp_var=not cheap)
-            r = np.exp(self.log_r(mean, var, np.sqrt))
+        cheap = seeding and U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
+        r = self.summary.at(eafm, s, U, self.kappa, cheap)
         if self.epistemic:
             r = r + eafm.predict(s, U).f_var
         return r
@@ -142,8 +146,7 @@ class NoiseVariance:
         """
         S, U = np.atleast_2d(S), np.atleast_2d(U)
         cheap = seeding and S.shape[0] * U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
-        mean, var = eafm.g_np_pairs(S, U, with_gp_var=not cheap and self.r_e != "noise_median")
-        r = np.exp(self.log_r(mean, var, np.sqrt))
+        r = self.summary.pairs(eafm, S, U, self.kappa, cheap)
         if self.epistemic:
             if cheap:
                 r = r + eafm.predict(S.mean(axis=0), U).f_var[None, :]

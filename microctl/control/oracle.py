@@ -14,13 +14,15 @@ The truth is a black box (contact equilibrium, not a CasADi graph) and its varia
 where an actuator stands still (stick-slip scatter ∝ |Δq_i|), so the search is direct:
 
 1. candidates: a grid over the redundant set (null-space coordinates of the AFM tool map,
-   :class:`~microctl.control.controller.RedundantSet`), plus, for each actuator i, points on the line
+   :class:`~microctl.control.redundant.RedundantSet`), plus, for each actuator i, points on the line
    where it stands still (K_i u = q_prev,i) — the kinks;
 2. each candidate is moved onto the true-mean surface by Newton steps along a direction that
    keeps the still actuator still (finite-difference slope), then checked for range;
 3. the grid is refined ``zooms`` times around the best feasible candidate.
 
-It has the controllers' interface: ``solve(target_um, state, u_init=None) -> ControlResult``.
+It has the controllers' interface: ``solve(target_um, state, u_init=None) -> ControlResult``;
+:class:`OracleSequenceController` plans a target list on the truth and returns, as the EAFM
+sequence controller, a :class:`~microctl.control.result.SequenceResult`.
 """
 
 from __future__ import annotations
@@ -30,11 +32,13 @@ import time
 
 import numpy as np
 
-from microctl.control.controller import ControlResult, RedundantSet
+from microctl.control.redundant import RedundantSet
+from microctl.control.result import ControlResult, SequenceResult
+from microctl.control.sequence_objectives import SEQUENCE_OBJECTIVES
 from microctl.errors import SolveError
 from microctl.models.afm import AnalyticForwardModel
 
-__all__ = ["OracleController"]
+__all__ = ["OracleController", "OracleSequenceController"]
 
 _FD_STEP = 1e-4
 #: Largest accepted |true_mean − target| of a returned command (µm).
@@ -252,8 +256,11 @@ class OracleSequenceController:
     grid, line_points, zooms, newton_steps : int
         As :class:`OracleController`.
     sequence_objective : str
+        A name registered in :data:`~microctl.control.sequence_objectives.SEQUENCE_OBJECTIVES`:
         ``"sum"`` (cumulative true variance) or ``"max"`` (the worst move's; ties broken by
-        the cumulative one with weight 1e-3 per move).
+        the cumulative one with weight ``MAX_TIE_WEIGHT`` per move). The DP keeps, for each
+        candidate, the predecessor of the best label score (:meth:`SequenceObjective.score`),
+        exact for the sum.
     """
 
     name = "oracle_sequence"
@@ -263,7 +270,7 @@ class OracleSequenceController:
         self.afm = afm
         self.one = OracleController(afm, stage, grid=grid, line_points=line_points, zooms=zooms,
                                     newton_steps=newton_steps)
-        self.mode = sequence_objective
+        self.sequence_objective = SEQUENCE_OBJECTIVES[sequence_objective]()
 
     @property
     def stage(self):
@@ -295,6 +302,7 @@ class OracleSequenceController:
         the states it moves from, shapes (T, n_p), (T,), (T, n_s)."""
         K = self.afm.K
         T = len(targets)
+        seq = self.sequence_objective
         prev = s0[None, :]
         Vm, Vs = np.zeros(1), np.zeros(1)
         back = []
@@ -302,14 +310,12 @@ class OracleSequenceController:
             C = np.vstack([self.one._var(p, sets[k]) for p in prev])  # (m_{k-1}, m_k) true variances
             Ssum = Vs[:, None] + C
             M = np.maximum(Vm[:, None], C)
-            score = Ssum if self.mode == "sum" else M + 1e-3 * Ssum / T
-            b = np.argmin(score, axis=0)
+            b = np.argmin(seq.score(M, Ssum, T), axis=0)
             cols = np.arange(C.shape[1])
             Vm, Vs = M[b, cols], Ssum[b, cols]
             back.append(b)
             prev = np.column_stack([np.full(sets[k].shape[0], targets[k]), sets[k] @ K.T])
-        final = Vs if self.mode == "sum" else Vm + 1e-3 * Vs / T
-        j = int(np.argmin(final))
+        j = int(np.argmin(seq.score(Vm, Vs, T)))
         path = np.empty((T, self.afm.n_p))
         for k in range(T - 1, -1, -1):
             path[k] = sets[k][j]
@@ -322,29 +328,9 @@ class OracleSequenceController:
         """s_0..s_{T-1} of a path, shape (T, n_s)."""
         return np.vstack([s0] + [np.concatenate([[targets[k]], self.afm.K @ path[k]]) for k in range(len(targets) - 1)])
 
-    def plan(self, targets_um, state: np.ndarray | None = None) -> list[ControlResult]:
-        """The truly sequence-optimal commands for ``targets_um`` from ``state``.
-
-        Parameters
-        ----------
-        targets_um : sequence of float, length T
-        state : ndarray, shape (n_s,), optional
-            s_0 = [t; q] (default zero state).
-
-        Returns
-        -------
-        list of ControlResult
-            One per move; ``predicted_um`` / ``predicted_std_um`` are the true mean and std
-            from the planned previous state, ``objective`` the true variance.
-
-        Raises
-        ------
-        SolveError
-            A step whose target no candidate reaches inside the ranges (the message names it).
-        """
-        t0 = time.perf_counter()
-        targets = np.asarray(targets_um, dtype=float).reshape(-1)
-        s0 = self.afm.zero_state() if state is None else np.asarray(state, dtype=float).reshape(-1)
+    def _first_sets(self, s0: np.ndarray, targets: np.ndarray) -> list[np.ndarray]:
+        """Each step's candidates from the nominal previous state (the greedy oracle's moves):
+        the greedy pose, the grid of the redundant set and the still and range-end lines."""
         rs, K = self.one.rset, self.afm.K
         T = len(targets)
         sets = []
@@ -363,20 +349,57 @@ class OracleSequenceController:
             Uk = self._candidates(s_nom, t, U, D)
             sets.append(np.vstack([greedy[None, :], Uk]))
             s_nom = np.concatenate([[t], K @ greedy])
+        return sets
+
+    def _zoom_sets(self, s0: np.ndarray, targets: np.ndarray, path: np.ndarray, spacing: np.ndarray
+                   ) -> list[np.ndarray]:
+        """Each step's candidates around the path: its pose, a 9 x 9 grid at ``spacing`` and the
+        still lines relative to the path's previous pose."""
+        rs, K = self.one.rset, self.afm.K
+        sets = []
+        for k, t in enumerate(targets):
+            t = float(t)
+            s_prev = s0 if k == 0 else np.concatenate([[targets[k - 1]], K @ path[k - 1]])
+            Uz = self.one._zoom_grid(path[k], spacing)
+            L, DL = self.one._still_lines(s_prev, t, self.one.line_points, None)
+            U = np.vstack([Uz, L])
+            D = np.vstack([np.repeat(rs.dir_u[None, :], Uz.shape[0], axis=0), DL])
+            sets.append(np.vstack([path[k][None, :], self._candidates(s_prev, t, U, D)]))
+        return sets
+
+    def plan(self, targets_um, state: np.ndarray | None = None) -> SequenceResult:
+        """The truly sequence-optimal commands for ``targets_um`` from ``state``.
+
+        Parameters
+        ----------
+        targets_um : sequence of float, length T
+        state : ndarray, shape (n_s,), optional
+            s_0 = [t; q] (default zero state).
+
+        Returns
+        -------
+        SequenceResult
+            One step per move; a step's ``predicted_um`` / ``predicted_std_um`` are the true mean
+            and std from the planned previous state, its ``objective`` the true variance (also
+            ``r_e_um2``); ``seed_total_r_e_um2`` the objective of the first DP's path (before the
+            zooms); no IPOPT (``iterations`` and ``n_starts`` 0).
+
+        Raises
+        ------
+        SolveError
+            A step whose target no candidate reaches inside the ranges (the message names it).
+        """
+        t0 = time.perf_counter()
+        targets = np.asarray(targets_um, dtype=float).reshape(-1)
+        s0 = self.afm.zero_state() if state is None else np.asarray(state, dtype=float).reshape(-1)
+        rs, K = self.one.rset, self.afm.K
+        sets = self._first_sets(s0, targets)
         path, var, S = self._dp(s0, targets, sets)
+        seed_value = self.sequence_objective.value(var)
         N = rs.N
         spacing = np.max(np.abs(np.vstack([(S / rs.D) @ N for S in sets])), axis=0) / max(self.one.grid - 1, 1) * 2.0
         for _ in range(self.one.zooms):
-            sets = []
-            for k, t in enumerate(targets):
-                t = float(t)
-                s_prev = s0 if k == 0 else np.concatenate([[targets[k - 1]], K @ path[k - 1]])
-                Uz = self.one._zoom_grid(path[k], spacing)
-                L, DL = self.one._still_lines(s_prev, t, self.one.line_points, None)
-                U = np.vstack([Uz, L])
-                D = np.vstack([np.repeat(rs.dir_u[None, :], Uz.shape[0], axis=0), DL])
-                sets.append(np.vstack([path[k][None, :], self._candidates(s_prev, t, U, D)]))
-            path, var, S = self._dp(s0, targets, sets)
+            path, var, S = self._dp(s0, targets, self._zoom_sets(s0, targets, path, spacing))
             spacing = spacing / 2.0
         out = []
         dt = time.perf_counter() - t0
@@ -388,9 +411,13 @@ class OracleSequenceController:
                 predicted_std_um=math.sqrt(var[k]), objective=float(var[k]), status="oracle sequence DP",
                 iterations=0, solve_time_s=dt, success=True, constraint_residual=abs(mean - float(t)),
                 n_starts=0))
-        return out
+        return SequenceResult(
+            steps=tuple(out), targets_um=tuple(float(t) for t in targets),
+            sequence_objective=self.sequence_objective.name, r_e_um2=var, total_r_e_um2=float(np.sum(var)),
+            worst_r_e_um2=float(np.max(var)), seed_total_r_e_um2=seed_value, status="oracle sequence DP",
+            success=True, iterations=0, n_starts=0, warm_started=False, solve_time_s=dt)
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
               u_init: np.ndarray | None = None) -> ControlResult:
         """The plan of one target (``u_init`` is ignored)."""
-        return self.plan([target_um], state)[0]
+        return self.plan([target_um], state).steps[0]

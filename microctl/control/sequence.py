@@ -20,16 +20,18 @@ is the paper's problem) and the EAFM mean as the constraint (eq. 1, GP input x =
 eq. 3). The state's pose part is the target: a feasible plan predicts the pose equal to it.
 
 One NLP per horizon T (``nlpsol``/IPOPT, exact Hessian from CasADi's AD, built once per T and
-controller; targets, s_0 and an objective scale are parameters). "max" is written with an
-epigraph variable z (``r_k <= z``) plus the cumulative r_e with weight :data:`MAX_TIE_WEIGHT`,
-which picks one plan among those with the same worst move.
+controller; targets, s_0 and an objective scale are parameters). The sum and the max are objects
+(:mod:`microctl.control.sequence_objectives`, shared with the sequence oracle): "max" is written
+with an epigraph variable z (``r_k <= z``) plus the cumulative r_e with weight
+:data:`~microctl.control.sequence_objectives.MAX_TIE_WEIGHT`, which picks one plan among those
+with the same worst move.
 
 Global seeding (the problem is non-convex over each move's redundant set, and couples moves
 through dq): dynamic programming over a grid of each step's redundant set
-(:meth:`~microctl.control.controller.EAFMController._on_surface`, the single-move controller's seeding
+(:meth:`~microctl.control.surface.EAFMSurface.on_surface`, the single-move controller's seeding
 grid, projected onto the EAFM-mean surface from a nominal previous state). The transition cost
 from candidate i of step k-1 to candidate j of step k is r_e([t_{k-1}; K u_i], u_j), computed
-for all pairs at once (:meth:`~microctl.control.objectives.NoiseVariance.r_pairs`); the DP's best end
+for all pairs at once (:meth:`~microctl.control.objectives.PerMoveObjective.r_pairs`); the DP's best end
 poses (grid local minima of the cost-to-arrive over the last step's grid) are back-tracked into
 paths, and the best ``n_polish`` (within ``polish_ratio``) are polished by IPOPT. With T = 1 the
 DP values are the single-move seeds, so the starts, and the optimum, are those of
@@ -39,6 +41,12 @@ Receding horizon: ``plan(targets[1:], state_after_move, u_init=previous_plan_u[1
 shifted previous plan (moved onto the new surfaces) as a start; by the principle of optimality
 the tail of an optimal plan is optimal for the tail problem, so the warm start is (near) the
 answer.
+
+The controller holds what it uses (composition): the EAFM, the per-move objective
+(:class:`~microctl.control.objectives.PerMoveObjective`), the sequence objective and the EAFM-mean
+surface helpers (:class:`~microctl.control.surface.EAFMSurface`: Newton projection, seeding grid,
+reachable interval, checks), the same ones :class:`~microctl.control.controller.EAFMController`
+uses.
 
 Checks on every returned command, as the other controllers: step by step, ``|t_mean(s_{k-1},
 u_k) - t_k| <= constraint_tol`` (NumPy reference; a Newton correction along w first if needed)
@@ -52,93 +60,26 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import casadi as ca
 import numpy as np
 
-from microctl.control.controller import (
-    ControllerSettings,
-    ControlResult,
-    EAFMController,
-    _grid_local_minima,
-    _ipopt_options,
-    _unreachable,
-)
+from microctl.control.base import BaseController, unreachable
+from microctl.control.ipopt import ipopt_options
+from microctl.control.objectives import PerMoveObjective
+from microctl.control.redundant import grid_local_minima
+from microctl.control.result import ControlResult, SequenceResult
+from microctl.control.settings import ControllerSettings
+from microctl.control.surface import EAFMSurface
 from microctl.errors import ConfigError, SolveError, UnreachableTargetError
 from microctl.models.eafm import EAFM
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["SequenceController", "SequenceResult", "MAX_TIE_WEIGHT"]
-
-#: Weight of the cumulative r_e (per move) added to the worst move's r_e with
-#: ``sequence_objective = "max"``: among plans with the same worst move, the quietest overall.
-MAX_TIE_WEIGHT = 1e-3
+__all__ = ["SequenceController", "SequenceResult"]
 
 
-@dataclass(frozen=True)
-class SequenceResult:
-    """A planned sequence of moves.
-
-    Attributes
-    ----------
-    steps : tuple of ControlResult
-        One per target, in order; step k's ``state`` is s_{k-1} (the given state for k = 1,
-        then ``[t_{k-1}; q_{k-1}]``) and its ``objective`` eq. 4 of that move.
-    targets_um : tuple of float
-    sequence_objective : str
-        ``"sum"`` or ``"max"``.
-    r_e_um2 : ndarray, shape (T,)
-        r_e of each move (µm²), the quantity summed (or maximised).
-    total_r_e_um2, worst_r_e_um2 : float
-        Their sum and maximum.
-    seed_total_r_e_um2 : float
-        The DP seed's value of the chosen start (its objective before the polish).
-    status : str
-        IPOPT return status of the accepted start (``"...; fallback to seed"`` on failure).
-    success : bool
-    iterations : int
-        IPOPT iterations summed over all starts.
-    n_starts : int
-        IPOPT starts made.
-    warm_started : bool
-        The returned plan was polished from ``u_init``.
-    solve_time_s : float
-        Wall time of the whole call (seeding included).
-    """
-
-    steps: tuple[ControlResult, ...]
-    targets_um: tuple[float, ...]
-    sequence_objective: str
-    r_e_um2: np.ndarray
-    total_r_e_um2: float
-    worst_r_e_um2: float
-    seed_total_r_e_um2: float
-    status: str
-    success: bool
-    iterations: int
-    n_starts: int
-    warm_started: bool
-    solve_time_s: float
-
-    @property
-    def u(self) -> np.ndarray:
-        """The commands, shape (T, n_p)."""
-        return np.vstack([r.u for r in self.steps])
-
-    def to_dict(self, names: tuple[str, ...] | None = None) -> dict:
-        """Plain-Python form (steps as :meth:`ControlResult.to_dict`)."""
-        return {
-            "targets_um": list(self.targets_um), "sequence_objective": self.sequence_objective,
-            "r_e_um2": [float(v) for v in self.r_e_um2], "total_r_e_um2": self.total_r_e_um2,
-            "worst_r_e_um2": self.worst_r_e_um2, "seed_total_r_e_um2": self.seed_total_r_e_um2,
-            "status": self.status, "success": self.success, "iterations": self.iterations,
-            "n_starts": self.n_starts, "warm_started": self.warm_started, "solve_time_s": self.solve_time_s,
-            "steps": [r.to_dict(names) for r in self.steps],
-        }
-
-
-class SequenceController(EAFMController):
+class SequenceController(BaseController):
     """Sequence-optimal control over a target list (module docstring) with the EAFM.
 
     Parameters
@@ -146,32 +87,47 @@ class SequenceController(EAFMController):
     eafm : EAFM
     settings : ControllerSettings, optional
         ``r_e``, ``kappa``, ``epistemic`` choose r_e (:meth:`ControllerSettings.objective`);
-        ``sequence_objective`` the sum or the worst move; the seeding/polish/check settings as
-        the single-move controller's.
+        ``sequence_objective`` the sum or the worst move (:meth:`ControllerSettings.sequence`);
+        the seeding/polish/check settings as the single-move controller's.
+    objective : PerMoveObjective, optional
+        The per-move objective instead of the one the settings describe.
+
+    Attributes
+    ----------
+    eafm : EAFM
+    objective : PerMoveObjective
+    sequence_objective : SequenceObjective
+    surface : EAFMSurface
+        Newton projection, seeding grid, reachable interval and checks on the EAFM-mean surface.
 
     Notes
     -----
-    Satisfies the :class:`~microctl.control.controller.Controller` protocol: :meth:`solve` is the
+    Satisfies the :class:`~microctl.control.result.Controller` protocol: :meth:`solve` is the
     plan of one target (T = 1), the paper's eq. 4.
     """
 
     name = "eafm_sequence"
 
-    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None):
-        settings = settings or ControllerSettings()
+    def __init__(self, eafm: EAFM, settings: ControllerSettings | None = None,
+                 objective: PerMoveObjective | None = None):
+        super().__init__(eafm.afm, settings)
+        objective = self.settings.objective() if objective is None else objective
+        if not isinstance(objective, PerMoveObjective):
+            raise ConfigError("objective must provide name, needs, mx(), evaluate(), r_mx(), r_np() and r_pairs(); "
+                              f"got {type(objective).__name__}")
+        self.eafm = eafm
+        self.objective = objective
+        self.sequence_objective = self.settings.sequence()
+        self.surface = EAFMSurface(eafm, self.settings, self.name)
         self._nlps: dict[int, tuple[ca.Function, ca.Function]] = {}
-        super().__init__(eafm, settings.objective(), settings, name="eafm_sequence")
-        self.mode = settings.sequence_objective
-
-    def _build(self) -> None:
-        """Nothing at construction: one multi-stage NLP per horizon T, built on first use."""
 
     # ---- NLP -------------------------------------------------------------------------
     def _nlp(self, T: int) -> tuple[ca.Function, ca.Function]:
         """IPOPT solver and plan function of horizon T (built once per T).
 
-        Solver: x = [u_1; ..; u_T] (+ z for "max"), p = [t_d (T); s_0 (n_s); J_ref],
-        g = [t_mean_k - t_k (T); K u_k (T n_q)] (+ r_k / J_ref - z (T)).
+        Solver: x = [u_1; ..; u_T] (+ the sequence objective's variables, z for "max"),
+        p = [t_d (T); s_0 (n_s); J_ref], g = [t_mean_k - t_k (T); K u_k (T n_q)] (+ its
+        constraints, r_k / J_ref - z (T) for "max").
         Function ``eafm_sequence_T(u, t_d, s0) -> (r_e, t_mean)``: u (T n_p), t_d (T), s0 (n_s);
         r_e and t_mean of each move (T).
         """
@@ -197,25 +153,13 @@ class SequenceController(EAFMController):
         r_all, tm_all = ca.vertcat(*r), ca.vertcat(*tm)
         fun = ca.Function(f"eafm_sequence_{T}", [x_u, td, s0], [r_all, tm_all], ["u", "t_d", "s0"],
                           ["r_e", "t_mean"])
-        g = [tm_all - td, *q]
-        if self.mode == "sum":
-            x, f = x_u, ca.sum1(r_all) / jref
-        else:
-            z = ca.MX.sym("z")
-            x = ca.vertcat(x_u, z)
-            f = z + MAX_TIE_WEIGHT * ca.sum1(r_all) / (T * jref)
-            g.append(r_all / jref - z)
+        x, f, extra = self.sequence_objective.nlp(x_u, r_all, jref, T)
+        g = [tm_all - td, *q, *extra]
         nlp = {"x": x, "p": ca.vertcat(td, s0, jref), "f": f, "g": ca.vertcat(*g)}
-        solver = ca.nlpsol(f"eafm_sequence_{T}_ipopt", "ipopt", nlp, _ipopt_options(self.settings))
+        solver = ca.nlpsol(f"eafm_sequence_{T}_ipopt", "ipopt", nlp, ipopt_options(self.settings))
         self.n_builds += 1
         self._nlps[T] = (solver, fun)
         return self._nlps[T]
-
-    def _value(self, r: np.ndarray) -> float:
-        """The sequence objective of per-move r_e values (µm²)."""
-        if self.mode == "sum":
-            return float(np.sum(r))
-        return float(np.max(r) + MAX_TIE_WEIGHT * np.mean(r))
 
     # ---- NumPy reference of a plan --------------------------------------------------
     def _states(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray:
@@ -247,14 +191,14 @@ class SequenceController(EAFMController):
 
     def _refine_path(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray | None:
         """Check each move in order (Newton along w if needed); None if one fails."""
-        return self._walk(s0, targets, U, self._refine)
+        return self._walk(s0, targets, U, self.surface.refine)
 
     def _project_path(self, s0: np.ndarray, targets: np.ndarray, U: np.ndarray) -> np.ndarray | None:
         """Move each pose of a path onto its surface from the path's own previous state (Newton
         along w, in order); None when a pose then lies outside the ranges or off the surface."""
         def project(s: np.ndarray, u: np.ndarray, t: float) -> np.ndarray | None:
-            Un, res = self._newton(s, u[None, :], t)
-            return None if res[0] > 1e-6 * max(1.0, abs(t)) or not self._in_range(Un[0]) else Un[0]
+            Un, res = self.surface.newton(s, u[None, :], t)
+            return None if res[0] > 1e-6 * max(1.0, abs(t)) or not self.surface.in_range(Un[0]) else Un[0]
 
         return self._walk(s0, targets, U, project)
 
@@ -286,38 +230,28 @@ class SequenceController(EAFMController):
         s_nom = s0
         cand: list[np.ndarray] = []
         back: list[np.ndarray] = []
-        V = np.zeros(1)      # cost-to-arrive of the previous step's candidates ("sum"), or
-        Vm = np.zeros(1)     # worst move so far and cumulative ("max")
-        Vs = np.zeros(1)
+        seq = self.sequence_objective
+        Vm = np.zeros(1)     # DP labels of the previous step's candidates: worst move so far
+        Vs = np.zeros(1)     # and cumulative r_e
         prev_S = s0[None, :]
         for k in range(T):
             t = float(targets[k])
-            Un, idx, shape = self._on_surface(s_nom, t, cfg.grid)
+            Un, idx, shape = self.surface.on_surface(s_nom, t, cfg.grid)
             if idx.size == 0:
-                lo, hi = self.reachable_interval(s_nom)
+                lo, hi = self.surface.reachable_interval(s_nom)
                 if not (lo - cfg.constraint_tol <= t <= hi + cfg.constraint_tol):
-                    raise UnreachableTargetError(f"step {k + 1} of {T}: {_unreachable(t, s_nom, 'EAFM', lo, hi)}")
-                Un, idx, shape = self._on_surface(s_nom, t, 4 * cfg.grid)  # the grid missed a thin section
+                    raise UnreachableTargetError(f"step {k + 1} of {T}: {unreachable(t, s_nom, 'EAFM', lo, hi)}")
+                Un, idx, shape = self.surface.on_surface(s_nom, t, 4 * cfg.grid)  # the grid missed a thin section
                 if idx.size == 0:
                     raise SolveError(f"step {k + 1} of {T}: no seed reaches target {t:g} µm inside the ranges")
             Uk = Un[idx]
             C = self.objective.r_pairs(self.eafm, prev_S, Uk, seeding=True)  # (m_{k-1}, m_k) transition costs
-            if self.mode == "sum":
-                tot = V[:, None] + C
-                b = np.argmin(tot, axis=0)
-                V = tot[b, np.arange(tot.shape[1])]
-                score = V
-            else:
-                # exact minimax (the worst move so far); among predecessors with the same worst
-                # move, the smaller cumulative r_e (a tie-break only: (max, sum) has no exact
-                # one-label DP)
-                M = np.maximum(Vm[:, None], C)
-                Ssum = Vs[:, None] + C
-                tie = M <= M.min(axis=0) * (1.0 + 1e-12)
-                b = np.argmin(np.where(tie, Ssum, np.inf), axis=0)
-                cols = np.arange(C.shape[1])
-                Vm, Vs = M[b, cols], Ssum[b, cols]
-                score = Vm + MAX_TIE_WEIGHT * Vs / T
+            M = np.maximum(Vm[:, None], C)  # labels of arriving at candidate j from predecessor i
+            Ssum = Vs[:, None] + C
+            b = seq.predecessor(M, Ssum)
+            cols = np.arange(C.shape[1])
+            Vm, Vs = M[b, cols], Ssum[b, cols]
+            score = seq.score(Vm, Vs, T)
             cand.append(Uk)
             back.append(b)
             best = int(np.argmin(score))
@@ -394,7 +328,7 @@ class SequenceController(EAFMController):
         T = len(targets)
         n_p = self.afm.n_p
         cand, value_grid, last_idx, shape, back = self._dp(s0, targets)
-        mins = _grid_local_minima(value_grid, shape)
+        mins = grid_local_minima(value_grid, shape)
         mins = mins[np.argsort(value_grid[mins])]
         # grid index of the last step -> candidate index
         pos = np.full(value_grid.size, -1)
@@ -428,21 +362,28 @@ class SequenceController(EAFMController):
                 path = self._refine_path(s0, targets, self._backtrack(cand, back, int(pos[i])))
                 if path is not None:
                     r = self._plan_r(s0, targets, path)
-                    best = (self._value(r), path, f"{status}; fallback to seed", float(value_grid[i]), False, r)
+                    best = (self.sequence_objective.value(r), path, f"{status}; fallback to seed",
+                            float(value_grid[i]), False, r)
                     break
         if best is None:
             raise SolveError(f"no valid command sequence for targets {targets.tolist()} µm (IPOPT: {status})")
         _, U, st, seed_value, warm_used, r = best
         S = self._states(s0, targets, U)
-        self._last_attempts = attempts
         dt = time.perf_counter() - t0
-        steps = tuple(replace(self._result(S[k], float(targets[k]), U[k], st, success, t0), solve_time_s=dt)
+        steps = tuple(replace(self._result(S[k], float(targets[k]), U[k], st, success, attempts, t0), solve_time_s=dt)
                       for k in range(T))
         return SequenceResult(
-            steps=steps, targets_um=tuple(float(t) for t in targets), sequence_objective=self.mode, r_e_um2=r,
+            steps=steps, targets_um=tuple(float(t) for t in targets),
+            sequence_objective=self.sequence_objective.name, r_e_um2=r,
             total_r_e_um2=float(np.sum(r)), worst_r_e_um2=float(np.max(r)), seed_total_r_e_um2=seed_value,
             status=st, success=success, iterations=int(attempts["iter"]), n_starts=int(attempts["n"]),
             warm_started=bool(warm_used), solve_time_s=dt)
+
+    def _result(self, s: np.ndarray, target: float, u: np.ndarray, status: str, success: bool, attempts: dict,
+                t0: float) -> ControlResult:
+        """The step result of the command u from s (eq. 4 of the move as its ``objective``)."""
+        objective = float(self.objective.evaluate(self.eafm, s, u[None, :])[0])
+        return self.surface.result(self.name, s, target, u, objective, status, success, attempts, t0)
 
     def _polish(self, s0: np.ndarray, targets: np.ndarray, starts: list[tuple[np.ndarray, bool]],
                 attempts: dict) -> tuple[float, np.ndarray, str, float, bool, np.ndarray] | None:
@@ -455,17 +396,14 @@ class SequenceController(EAFMController):
         ubx = np.tile(afm.workspace.u_hi, T)
         lbg = np.concatenate([np.zeros(T), np.tile(afm.lo, T)])
         ubg = np.concatenate([np.zeros(T), np.tile(afm.hi, T)])
-        if self.mode == "max":
-            lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
-            lbg, ubg = np.append(lbg, np.full(T, -np.inf)), np.append(ubg, np.zeros(T))
+        seq = self.sequence_objective
+        lbx, ubx, lbg, ubg = seq.bounds(lbx, ubx, lbg, ubg, T)
         best: tuple[float, np.ndarray, str, float, bool, np.ndarray] | None = None
         for U0, warm in starts:
             r0 = self._plan_r(s0, targets, U0)
-            jref = float(np.sum(r0) if self.mode == "sum" else np.max(r0))
+            jref = seq.scale(r0)
             jref = jref if jref > 1e-300 else 1.0
-            x0 = U0.ravel()
-            if self.mode == "max":
-                x0 = np.append(x0, float(np.max(r0)) / jref)
+            x0 = seq.x0(U0.ravel(), r0, jref)
             x, st = self._run(solver, x0, np.concatenate([targets, s0, [jref]]), lbx, ubx, lbg, ubg)
             attempts["status"].append(st["status"])
             attempts["iter"] += st["iter"]
@@ -476,7 +414,7 @@ class SequenceController(EAFMController):
             if U is None:
                 continue
             r = self._plan_r(s0, targets, U)
-            v = self._value(r)
+            v = seq.value(r)
             if best is None or v < best[0]:
-                best = (v, U, st["status"], self._value(r0), warm, r)
+                best = (v, U, st["status"], seq.value(r0), warm, r)
         return best

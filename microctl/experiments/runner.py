@@ -393,7 +393,7 @@ def _sequence_step(ctrl, rest: list[float], s: np.ndarray, plan: Any, run: _Run,
     if isinstance(ctrl, OracleSequenceController):
         if not plan:
             try:
-                plan = ctrl.plan(rest, s)
+                plan = ctrl.plan(rest, s).steps
             except SolveError as exc:
                 r["fallbacks"] += 1
                 run.say(f"experiment: {ctrl.name} could not plan {rest} µm ({exc}); the AFM command was used")

@@ -24,7 +24,7 @@ from microctl.gp.linalg import LOG_2PI
 from microctl.gp.modelfile import read_model, write_model
 from microctl.gp.noise_models import noise_model_class
 from microctl.gp.noise_prior import LogVarianceMean
-from microctl.gp.posterior import G_GP_VAR_NEGLIGIBLE, Posterior
+from microctl.gp.posterior import Posterior
 
 __all__ = ["VHGPRPrediction", "FittedVHGPR"]
 
@@ -210,9 +210,9 @@ class FittedVHGPR:
 
     @property
     def g_gp_var_negligible(self) -> bool:
-        """g's GP part has prior variance <= :data:`G_GP_VAR_NEGLIGIBLE` (its variance is then that bound)."""
-        k = self.g_kernel
-        return k.signal_var + k.bias_var <= G_GP_VAR_NEGLIGIBLE
+        """g's GP part has prior variance <= :data:`~microctl.gp.posterior.G_GP_VAR_NEGLIGIBLE`
+        (its variance is then that bound)."""
+        return self.posterior.g_gp_var_negligible
 
     @property
     def noise_model(self) -> str:

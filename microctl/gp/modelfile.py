@@ -56,7 +56,8 @@ def write_model(model: Any, path: str | Path) -> None:
         arrays[name] = np.array([] if v is None else [float(v)], dtype=np.float64)
     meta = {name: _META_WRITE.get(name, _same)(getattr(model, name)) for name in cls.stored("meta")
             if name != "noise_model_name" and not (name in _WRITTEN_WHEN_SET and not getattr(model, name))}
-    meta["noise_model"] = model.noise_model
+    if model.noise_model != _derived_noise_model(model):  # the first two models' files stay as they were
+        meta["noise_model"] = model.noise_model
     arrays["meta_json"] = np.array(json.dumps(meta))
     for name in cls.stored("optional_array"):
         v = getattr(model, name)
@@ -72,6 +73,11 @@ def write_model(model: Any, path: str | Path) -> None:
 
 def _same(v: Any) -> Any:
     return v
+
+
+def _derived_noise_model(model: Any) -> str:
+    """The name a file without ``noise_model`` is read with: ``physical`` with features, else ``hgp``."""
+    return "physical" if model.g_feature_matrix is not None else "hgp"
 
 
 def _optional_str(v: Any) -> str | None:

@@ -68,6 +68,7 @@ def test_covering_design_holds_actuators_still_and_visits_the_limits():
     assert np.array_equal(u, training_moves(afm, "covering", 200, seed=4))
 
 
+@pytest.mark.slow
 def test_large_designs_run_in_linear_memory():
     """n = 20000 (the first release built a 20000 x 20000 distance matrix, 3 GiB): both
     designs finish and stay in the polytope."""

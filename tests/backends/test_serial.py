@@ -56,6 +56,7 @@ def test_out_of_range_sends_nothing():
             assert len(emu.log) == n
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "fault, match",
     [

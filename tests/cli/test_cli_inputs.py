@@ -6,7 +6,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -151,6 +150,7 @@ def test_diagnose_refuses_to_overwrite_its_config(log40, tmp_path, capsys):
     assert cfg.read_bytes() == SIM.read_bytes()
 
 
+@pytest.mark.slow
 def test_diagnose_outputs_are_listed(log40, tmp_path):
     """The list the input guard uses covers every file diagnose writes."""
     out = tmp_path / "d"
@@ -171,25 +171,40 @@ def test_solve_state_beyond_hardware_limit(tmp_path, capsys, state, message):
 
 
 def test_ctrl_c_while_modules_load_prints_no_traceback(tmp_path):
-    """SIGINT at several moments of start-up: one line, never a traceback.
+    """SIGINT at several moments of start-up: exit 130, one line, never a traceback.
 
-    The first ~20 ms (interpreter start-up and importing microctl.cli) are not covered: no
-    code of microctl runs yet. Delays start after that.
+    The moments are observed, not timed: the child runs with ``-X importtime``, which writes a
+    line to stderr as each module finishes importing, and SIGINT is sent as soon as the line of
+    a chosen module appears, so each run is interrupted while the modules that follow it load
+    (argparse and the command modules, NumPy, CasADi, SciPy, PyYAML), on a fast or a slow
+    machine alike. All of them load inside ``main()`` (microctl.cli itself imports only ``sys``
+    and microctl.errors), which is where the interrupt must be caught.
     """
-    cmd = [sys.executable, "-m", "microctl", "collect", "--config", str(TABLE1), "-n", "300",
+    import threading
+
+    cmd = [sys.executable, "-X", "importtime", "-m", "microctl", "collect", "--config", str(TABLE1), "-n", "300",
            "-o", str(tmp_path / "c.csv")]
-    outcomes = []
-    for delay in (0.08, 0.15, 0.25, 0.4, 0.6):
+    for module in ("argparse", "microctl.cli.commands", "numpy", "casadi", "scipy", "yaml"):
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        time.sleep(delay)
-        p.send_signal(signal.SIGINT)
-        err = p.communicate(timeout=60)[1]
-        outcomes.append((delay, p.returncode, err))
-        assert "Traceback" not in err, (delay, err)
-        if p.returncode != 0:  # interrupted (130, or killed by the re-raised SIGINT: -2)
-            assert err.strip().splitlines()[-1] == "microctl: interrupted", (delay, err)
-    assert sum(rc != 0 for _, rc, _ in outcomes) >= 3, outcomes
+        watchdog = threading.Timer(120, p.kill)  # a hung child fails the test instead of hanging it
+        watchdog.start()
+        try:
+            lines = []
+            for line in p.stderr:  # until `module` has been imported
+                lines.append(line)
+                if line.startswith("import time:") and line.rsplit("|", 1)[-1].strip() == module:
+                    p.send_signal(signal.SIGINT)
+                    break
+            else:
+                pytest.fail(f"{module} was never imported: {''.join(lines)[-2000:]}")
+            lines += p.stderr.readlines()
+            p.wait()
+        finally:
+            watchdog.cancel()
+        err = "".join(line for line in lines if not line.startswith("import time:"))
+        assert "Traceback" not in err, (module, err)
+        assert (p.returncode, err) == (130, "microctl: interrupted\n"), (module, p.returncode, err)
 
 
 def test_experiment_file_not_utf8(tmp_path, capsys):

@@ -177,6 +177,7 @@ def yaml_mutant(draw, base_text: str) -> bytes:
 # ---- stage YAML ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_fuzz_stage_yaml():
     OUTCOMES.clear()
     _fuzz_stage_yaml()
@@ -321,6 +322,7 @@ def log_mutant(draw, text: str) -> bytes:
     return data
 
 
+@pytest.mark.slow
 def test_fuzz_measurement_log(good_log):
     OUTCOMES.clear()
     _fuzz_measurement_log(good_log)
@@ -410,6 +412,7 @@ def model_mutant(draw, path: Path) -> bytes:
     return buf.getvalue()
 
 
+@pytest.mark.slow
 def test_fuzz_model_file(good_model):
     OUTCOMES.clear()
     _fuzz_model_file(good_model)

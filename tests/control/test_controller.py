@@ -118,31 +118,37 @@ def _fd_grad(f, u, h):
 @pytest.mark.parametrize("r_e", ["noise_median", "noise_mean", "noise_quantile"])
 def test_first_order_optimality(afm, eafm, r_e):
     opt_ = OptimalController(eafm, ControllerSettings(r_e=r_e))
-    h = np.array([1e-5, 1e-7, 1e-7])
     rng = np.random.default_rng(4)
     for s, target in zip(_states(afm, 6, seed=5), rng.uniform(-20, 50, 6)):
         r = opt_.solve(target, s)
         assert r.success
-        u = r.u
+        _assert_first_order_optimal(afm, eafm, s, r.u, lambda v: _r_e(eafm, s, v, r_e))
 
-        def obj(v):  # eq. 4 from the NumPy reference prediction
-            return float(-np.expm1(-_r_e(eafm, s, v, r_e)))
 
-        gJ = _fd_grad(obj, u, h)
-        gc = _fd_grad(lambda v: float(eafm.predict(s, v).t_mean[0]), u, h)
-        q = afm.K @ u
-        rows, signs = [gc], [0.0]
-        for j in range(afm.n_q):
-            if q[j] - afm.lo[j] < 1e-6:
-                rows.append(afm.K[j]); signs.append(1.0)   # lower bound: multiplier >= 0
-            elif afm.hi[j] - q[j] < 1e-6:
-                rows.append(-afm.K[j]); signs.append(1.0)  # upper bound
-        A = np.array(rows).T
-        coef, *_ = np.linalg.lstsq(A, gJ, rcond=None)
-        resid = gJ - A @ coef
-        assert np.linalg.norm(resid) <= 1e-4 * max(np.linalg.norm(gJ), 1e-12) + 1e-12
-        for c, sg in zip(coef[1:], signs[1:]):
-            assert c >= -1e-6 * np.linalg.norm(gJ)
+def _assert_first_order_optimal(afm, eafm, s, u, r_e_of):
+    """KKT of eq. 4 at u from s: the gradient of ``1 - exp(-r_e_of(v))`` (finite differences of
+    the NumPy reference) is a combination of the constraint's gradient and the active range
+    bounds' normals, with non-negative multipliers on the bounds."""
+    h = np.array([1e-5, 1e-7, 1e-7])
+
+    def obj(v):  # eq. 4 from the NumPy reference prediction
+        return float(-np.expm1(-r_e_of(v)))
+
+    gJ = _fd_grad(obj, u, h)
+    gc = _fd_grad(lambda v: float(eafm.predict(s, v).t_mean[0]), u, h)
+    q = afm.K @ u
+    rows, signs = [gc], [0.0]
+    for j in range(afm.n_q):
+        if q[j] - afm.lo[j] < 1e-6:
+            rows.append(afm.K[j]); signs.append(1.0)   # lower bound: multiplier >= 0
+        elif afm.hi[j] - q[j] < 1e-6:
+            rows.append(-afm.K[j]); signs.append(1.0)  # upper bound
+    A = np.array(rows).T
+    coef, *_ = np.linalg.lstsq(A, gJ, rcond=None)
+    resid = gJ - A @ coef
+    assert np.linalg.norm(resid) <= 1e-4 * max(np.linalg.norm(gJ), 1e-12) + 1e-12
+    for c, sg in zip(coef[1:], signs[1:]):
+        assert c >= -1e-6 * np.linalg.norm(gJ)
 
 
 def _r_e(eafm, s, u, r_e, kappa=1.645):
@@ -226,3 +232,58 @@ def test_compare_noise_probability(afm, eafm, opt):
     assert c.prob_quieter == pytest.approx(p, rel=1e-9)
     assert compare_noise(eafm, s, far.u, quiet.u).prob_quieter == pytest.approx(1 - p, abs=1e-12)
     assert c.credible and c.prob_quieter > 0.99
+
+
+# --------------------------------------------------------------------------- a registered objective
+
+
+@pytest.fixture
+def second_moment():
+    """A toy r_e summary, registered for the test only: ``exp(mu_g + s_g^2)``, the root of the
+    second moment E[exp(2 g)] of the log-normal noise variance."""
+    from microctl.control.noise_summaries import R_E_SUMMARIES, NoiseSummary
+
+    class NoiseSecondMoment(NoiseSummary):
+        name = "toy_second_moment"
+        description = "exp(mu_g + s_g^2): the root of the noise variance's second moment"
+
+        def log_r(self, g_mean, g_var, kappa, sqrt):
+            return g_mean + g_var
+
+    R_E_SUMMARIES.register(NoiseSecondMoment)
+    yield NoiseSecondMoment.name
+    R_E_SUMMARIES.unregister(NoiseSecondMoment.name)
+
+
+def test_a_registered_r_e_summary_is_a_setting_and_is_solved(afm, eafm, second_moment):
+    """One new class registered under a new name: the settings accept the name, the objective
+    needs g's variance, and the controller's optimum meets the constraint, the ranges and the
+    first-order conditions of eq. 4 with r_e = exp(mu_g + s_g^2) written here from the NumPy
+    prediction; the sequence controller solves it too (each move on its target)."""
+    from microctl.control.sequence import SequenceController
+
+    settings = ControllerSettings(r_e=second_moment)
+    assert settings.objective().needs == ("t_mean", "g_mean", "g_var")
+
+    def r_e(s, v):
+        p = eafm.predict(s, v)
+        return float(np.exp(p.g_mean[0] + p.g_var[0]))
+
+    opt_ = OptimalController(eafm, settings)
+    rng = np.random.default_rng(8)
+    for s, target in zip(_states(afm, 3, seed=9), rng.uniform(0, 40, 3)):
+        r = opt_.solve(target, s)
+        assert r.success, r.status
+        _check_valid(r, afm, eafm, target)
+        assert r.objective == pytest.approx(-math.expm1(-r_e(s, r.u)), rel=1e-10)
+        _assert_first_order_optimal(afm, eafm, s, r.u, lambda v: r_e(s, v))
+    plan = SequenceController(eafm, settings).plan([10.0, 20.0])
+    assert plan.success
+    for step, t, r in zip(plan.steps, (10.0, 20.0), plan.r_e_um2):
+        _check_valid(step, afm, eafm, t)
+        assert r == pytest.approx(r_e(step.state, step.u), rel=1e-10)
+
+
+def test_an_unregistered_r_e_summary_is_refused():
+    with pytest.raises(ConfigError, match="r_e: must be one of noise_quantile, noise_mean, noise_median"):
+        ControllerSettings(r_e="toy_second_moment")

@@ -416,7 +416,7 @@ def test_oracle_sequence_avoids_the_forced_move():
     afm = AnalyticForwardModel(cfg.stage)
     targets = [20.0, 40.0]
     with SimulatedStage(cfg, seed=0) as st:
-        plan = OracleSequenceController(afm, st, grid=15, line_points=31, zooms=2).plan(targets)
+        plan = OracleSequenceController(afm, st, grid=15, line_points=31, zooms=2).plan(targets).steps
         one = OracleController(afm, st, grid=15, line_points=31, zooms=2)
         s, greedy = afm.zero_state(), []
         for t in targets:
@@ -526,3 +526,23 @@ def test_solve_targets_table_and_errors(model_file, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["solve", "--config", str(TABLE1), "--model", str(model_file), "--targets", "7", "--target", "7"])
     assert exc.value.code == 2
+
+
+def test_sequence_objectives_are_shared_registered_objects(afm, curved):
+    """"sum" and "max" are registered objects used by the sequence controller and the oracle
+    alike: their value of a plan's r_e, and the DP's choice of predecessor (the sum's Bellman
+    argmin; the max's exact minimax, ties broken by the cumulative r_e)."""
+    from microctl.control.sequence_objectives import MAX_TIE_WEIGHT, SEQUENCE_OBJECTIVES, MaxObjective
+
+    assert SEQUENCE_OBJECTIVES.names() == ("sum", "max")
+    r = np.array([0.2, 0.5, 0.1])
+    total, worst = SEQUENCE_OBJECTIVES["sum"](), SEQUENCE_OBJECTIVES["max"]()
+    assert total.value(r) == pytest.approx(0.8, rel=1e-15)
+    assert worst.value(r) == pytest.approx(0.5 + MAX_TIE_WEIGHT * 0.8 / 3, rel=1e-15)
+    W = np.array([[0.5, 0.3], [0.5, 0.4]])  # labels of arriving at candidate j (column) from i (row)
+    S = np.array([[0.9, 0.6], [0.7, 0.5]])
+    assert total.predecessor(W, S).tolist() == [1, 1]
+    assert worst.predecessor(W, S).tolist() == [1, 0]
+    settings = ControllerSettings(sequence_objective="max")
+    assert isinstance(SequenceController(curved, settings).sequence_objective, MaxObjective)
+    assert isinstance(OracleSequenceController(afm, None, sequence_objective="max").sequence_objective, MaxObjective)

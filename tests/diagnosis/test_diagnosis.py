@@ -59,6 +59,7 @@ def _check_params(entry: dict, truth: dict) -> None:
             assert abs(est - true) <= bar, f"{name}: {est} vs {true} (bar {bar})"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cause", MEAN_CAUSES)
 def test_planted_mean_cause_is_named(cfg, cause):
     rng = np.random.default_rng(100 + MEAN_CAUSES.index(cause))
@@ -89,6 +90,7 @@ def test_offsets_are_reported_equivalent(cfg):
     assert "actuator_gain[1]" not in keys and "sensor_scale" not in keys
 
 
+@pytest.mark.slow
 def test_planted_friction_is_a_noise_cause(cfg):
     rng = np.random.default_rng(200)
     effects, truth = random_cause("actuator_friction", rng, cfg.stage.n_act, compression_um=_compression(cfg))
@@ -108,6 +110,7 @@ def test_planted_friction_is_a_noise_cause(cfg):
     assert abs(base["params"]["std_um"] - gauge) <= 4 * base["stderr"]["std_um"]
 
 
+@pytest.mark.slow
 def test_two_planted_causes_mean_and_noise(cfg):
     effects = Effects(actuator_gain=(ActuatorGain(2, 0.94),), actuator_friction=(ActuatorFriction(3, 0.05),))
     data = simulate(cfg, effects, 250, seed=11)
@@ -122,6 +125,7 @@ def test_two_planted_causes_mean_and_noise(cfg):
     assert rep["selection"]["weighted"]  # the mean was refitted with the noise model's weights
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_clean_data_is_not_significant(cfg, seed):
     data = simulate(cfg, Effects(), 200, seed=seed)
@@ -134,6 +138,7 @@ def test_clean_data_is_not_significant(cfg, seed):
     assert rep["discrepancy"]["noise_std_um"] == pytest.approx(gauge, rel=0.2)
 
 
+@pytest.mark.slow
 def test_effect_outside_the_vocabulary_is_unexplained(cfg):
     """A sinusoid in rx is no vocabulary cause: ``unexplained``, and the GP recovers it."""
     data = simulate(cfg, Effects(), 200, seed=7, extra=lambda u, q: 0.8 * np.sin(2 * np.pi * u[:, 1] / 0.8))
@@ -146,6 +151,7 @@ def test_effect_outside_the_vocabulary_is_unexplained(cfg):
     assert set(g["nlpd"]) >= {"afm_gp", "extended_gp"}
 
 
+@pytest.mark.slow
 def test_extended_eafm_uses_the_diagnosed_noise_and_controls_no_worse(tmp_path):
     """README's step by step on sim_paper (PZT4 gain 0.6 with stick-slip 0.1 /µm, PZT1 gain 1.1):
     collect 125 moves, diagnose, then the extended EAFM. extended.yaml carries the accepted

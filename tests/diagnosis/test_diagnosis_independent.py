@@ -95,6 +95,7 @@ def test_generator_and_microctl_physics_agree_on_the_same_stage(cfg, geo):
 CAUSES = list(REGISTRY)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cause", CAUSES)
 def test_planted_cause_is_named_on_independent_data(cfg, geo, cause):
     """One planted cause (random actuator and size, random stage physics, 150 moves): its class
@@ -129,6 +130,7 @@ def test_planted_cause_is_named_on_independent_data(cfg, geo, cause):
             assert abs(est - true) <= bar, f"{name}: {est} vs {true} (bar {bar})"
 
 
+@pytest.mark.slow
 def test_contact_loss_on_a_stage_preloaded_unlike_its_config(cfg, geo):
     """Issue 11: a set screw 12 µm low on a stage whose preload compression (8 µm) is not the
     config's (5 µm) was named contact_offset on another actuator. Now: contact_loss[3], with the
@@ -147,6 +149,7 @@ def test_contact_loss_on_a_stage_preloaded_unlike_its_config(cfg, geo):
     assert rep["physics_nuisance"]["preload_compression_um"] == pytest.approx(truth.compression_um, rel=0.1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [11, 12])
 def test_clean_independent_data_names_nothing(cfg, geo, seed):
     """A stage that differs from its config only where a healthy reading does not see it (random
@@ -163,6 +166,7 @@ def test_clean_independent_data_names_nothing(cfg, geo, seed):
     assert rep["outliers"]["count"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", ind.OFF_VOCABULARY)
 def test_off_vocabulary_effect_is_unexplained_and_names_no_cause(cfg, geo, shape):
     """A bump, a periodic error, a warm-up drift with a time constant, a direction-dependent
@@ -175,6 +179,7 @@ def test_off_vocabulary_effect_is_unexplained_and_names_no_cause(cfg, geo, shape
     assert _vocabulary(rep) == [], (info, rep["accepted"])
 
 
+@pytest.mark.slow
 def test_corrupt_cells_are_outliers_by_row_not_causes(cfg, geo, tmp_path, capsys):
     """Issue 11: one corrupt cell (q1 = 50 µm) became "contact_offset x2". Now the corrupt rows
     are reported as outliers by CSV line and the named causes are those of the clean log."""

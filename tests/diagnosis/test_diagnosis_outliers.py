@@ -93,6 +93,7 @@ def test_flexible_term_leave_one_out_without_gp_equals_refits():
     assert flex.values[5] == pytest.approx(B[5] @ coef, abs=1e-8)
 
 
+@pytest.mark.slow
 def test_flexible_term_leave_one_out_with_gp_equals_conditioning_on_the_others():
     """R&W eq. 5.12 against conditioning the GP on the other rows (basis part held)."""
     data, rng = _run(80, seed=4)
@@ -128,6 +129,7 @@ def offset_diagnosis():
     return run_diagnosis(cfg, data, gp=False, folds=2)
 
 
+@pytest.mark.slow
 def test_report_names_actuators_delta_bic_and_the_equivalence_it_refers_to(offset_diagnosis, tmp_path):
     from microctl.diagnosis.report import render_markdown, summary_lines, write_outputs
     from microctl.diagnosis.selection import DELTA_BIC
@@ -147,6 +149,7 @@ def test_report_names_actuators_delta_bic_and_the_equivalence_it_refers_to(offse
     assert first["delta_bic"] == pytest.approx(steps[0]["best_bic"] - steps[0]["current_bic"])
 
 
+@pytest.mark.slow
 def test_every_figure_axis_has_a_unit(offset_diagnosis, tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
     import matplotlib

@@ -147,6 +147,7 @@ def test_data_from_arrays_directions_keep_sign_on_zero_steps():
 # ---- command line ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_diagnose_writes_report_figures_and_extended_config(cfg, tmp_path, capsys):
     cfg_path = CONFIGS / "stage" / "table1.yaml"
     table1 = load_stage_config(cfg_path)
@@ -187,6 +188,7 @@ def test_cli_diagnose_input_errors_exit_2(tmp_path, capsys):
     assert "u_ry" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_rediagnosing_with_the_extended_config_finds_nothing(tmp_path):
     """extended.yaml carries the accepted causes (incl. dynamic ones): the same data is then clean."""
     cfg_path = CONFIGS / "stage" / "table1.yaml"
@@ -205,6 +207,7 @@ def test_rediagnosing_with_the_extended_config_finds_nothing(tmp_path):
     assert rep2["accepted"]["mean"] == []
 
 
+@pytest.mark.slow
 def test_log_without_time_has_no_drift_candidate(cfg):
     from microctl.diagnosis.pipeline import run_diagnosis
 
@@ -216,6 +219,7 @@ def test_log_without_time_has_no_drift_candidate(cfg):
     assert all(w["variable"] != "time_s" for w in rep["discrepancy"]["where"])
 
 
+@pytest.mark.slow
 def test_a_gauge_zero_offset_is_a_nuisance_not_a_discrepancy(cfg):
     """Readings relative to one noisy zero reading: a constant offset must not be flagged."""
     from microctl.diagnosis.pipeline import run_diagnosis

@@ -207,6 +207,7 @@ def test_keyboard_interrupt_keeps_logs(tmp_path, capsys):
     assert len(read_log(tmp_path / "out" / "training_log.csv", cfg.stage_config.stage)) == 7
 
 
+@pytest.mark.slow
 def test_emulated_serial_run(tmp_path):
     """Once through the serial backend against the in-process emulator (emulate: true)."""
     doc = {**TINY, "stage": str(EMULATED), "emulate": True, "controllers": ["afm", "eafm"],
@@ -234,6 +235,7 @@ def test_seed_offset_shifts_every_seed(tmp_path):
         cfg.with_seed_offset(-1)
 
 
+@pytest.mark.slow
 def test_short_run_quality(tmp_path):
     """A short seeded run (80 designed moves, no refinement) on sim_paper: the EAFM beats the
     AFM where the stage's defects make the AFM wrong and noisy. Thresholds sit well inside
@@ -250,6 +252,7 @@ def test_short_run_quality(tmp_path):
     assert set(res["bars"]) >= {"msse_ratio", "vsse_ratio", "eafm_bias", "vsse_vs_oracle", "coverage"}
 
 
+@pytest.mark.slow
 def test_out_on_an_old_run_folder_clears_the_previous_run(tmp_path, capsys):
     """The files a previous run wrote are removed first (figures: false writes none, so old
     figures would otherwise survive beside new results); other files are kept; a folder

@@ -23,6 +23,8 @@ from microctl.experiments.report import PAPER_TABLE_II
 from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.config import load_stage_config
 
+pytestmark = pytest.mark.slow  # 200 simulated runs shared by both tests
+
 ROOT = Path(__file__).resolve().parents[2]
 TARGETS = PAPER_TABLE_II["targets_um"]
 

@@ -315,6 +315,7 @@ def test_save_to_missing_directory_is_data_error(tmp_path: Path, small_model: Fi
 # --------------------------------------------------------------------------- accuracy
 
 
+@pytest.mark.slow
 def test_recovers_planted_heteroscedastic_noise() -> None:
     X, y, _, _ = _planted(300, seed=11)
     Xt, yt, ft, gt = _planted(2000, seed=12)
@@ -331,6 +332,7 @@ def test_recovers_planted_heteroscedastic_noise() -> None:
     assert model.nlpd(Xt, yt) - oracle <= 0.05
 
 
+@pytest.mark.slow
 def test_mcycle_nlpd(mcycle_model: FittedVHGPR) -> None:
     X, y = _mcycle()
     # Authors' MATLAB VHGPR on the same protocol: 4.07 nats; homoscedastic GP 4.51 (data/README.md).
@@ -506,6 +508,7 @@ def test_se_part_is_kept_only_when_it_pays() -> None:
     assert sel["bound_with_se"] - sel["bound_affine"] > 2 * sel["penalty"]
 
 
+@pytest.mark.slow
 def test_noise_features_recover_planted_floor_and_friction() -> None:
     """Noise variance 0.03^2 + (0.05 dq)^2 with dq = x1 - x2 (x uniform in [0, 30]^2, a third
     of the rows with dq = 0 so the floor is identifiable): the fitted prior mean's c_0 and c_1

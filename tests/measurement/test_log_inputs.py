@@ -135,6 +135,7 @@ def test_cli_huge_t_is_one_line_exit_2(good_log, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_diagnose_sets_an_implausible_row_aside_as_an_outlier(tmp_path, capsys):
     """diagnose reads what train refuses: a corrupt cell is an outlier to name by row (issue 11),
     with a one-line note naming the file, row and column, and the run completes."""

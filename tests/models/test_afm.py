@@ -92,6 +92,7 @@ def _geometries(draw):
     return n_act, contacts, tilts, dirs, tool
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(_geometries(), st.lists(st.floats(-5, 5), min_size=3, max_size=3))
 def test_general_construction_equals_rigid_body(values, p):

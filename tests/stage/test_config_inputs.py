@@ -79,6 +79,7 @@ def test_float_without_dot_is_a_number(tmp_path):
     assert load_yaml(p)["a"] == [1e-3, 1e5, -250.0, "1e", "e5", "1e3"]
 
 
+@pytest.mark.slow
 def test_deep_nesting_is_one_line(tmp_path):
     p = tmp_path / "deep.yaml"
     p.write_text("[" * 20000 + "]" * 20000 + "\n")

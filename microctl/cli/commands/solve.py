@@ -9,13 +9,13 @@ import sys
 import numpy as np
 
 from microctl.control.controller import (
-    R_E_SETTINGS,
-    SEQUENCE_OBJECTIVES,
     AFMController,
     ControllerSettings,
     OptimalController,
     with_baseline,
 )
+from microctl.control.noise_summaries import R_E_SUMMARIES
+from microctl.control.sequence_objectives import SEQUENCE_OBJECTIVES
 from microctl.errors import ConfigError
 from microctl.models.afm import (
     T_PLAUSIBLE_FACTOR,
@@ -46,12 +46,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--state", default=None, metavar="t,q1,..",
                    help="state s = [t; q] before the move, comma-separated µm (default: zero state)")
     d = ControllerSettings()
-    p.add_argument("--r-e", default=d.r_e, choices=R_E_SETTINGS,
+    p.add_argument("--r-e", default=d.r_e, choices=R_E_SUMMARIES.names(),
                    help=f"noise summary r_e of eq. 4 (default {d.r_e}: the upper quantile of the predicted noise "
                    "variance, cautious where the noise model is uncertain; see docs/controller.md)")
     p.add_argument("--kappa", type=float, default=d.kappa,
                    help=f"standard normal quantile of noise_quantile (default {d.kappa:g}: 95 %%)")
-    p.add_argument("--sequence-objective", default=d.sequence_objective, choices=SEQUENCE_OBJECTIVES,
+    p.add_argument("--sequence-objective", default=d.sequence_objective, choices=SEQUENCE_OBJECTIVES.names(),
                    help=f"with --targets: minimise the sum of the moves' r_e or the worst move's "
                    f"(default {d.sequence_objective})")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
@@ -224,9 +224,9 @@ def _run_sequence(args: argparse.Namespace, afm: AnalyticForwardModel, eafm: EAF
         print_json(out)
         return 0
     where = ", ".join(f"{n} = {v:g}" for n, v in zip(afm.state_names, state))
-    what = "sum of the moves' r_e" if plan.sequence_objective == "sum" else "worst move's r_e"
+    what = SEQUENCE_OBJECTIVES[plan.sequence_objective].description
     print(f"targets {', '.join(f'{t:g}' for t in targets)} µm in sequence from the state {where} (µm); "
-          f"minimised: the {what} (r_e = {settings.r_e})")
+          f"minimised: {what} (r_e = {settings.r_e})")
     head = (f"{'step':>4} {'target':>8} " + " ".join(f"{'u_' + n:>9}" for n in afm.dof) + " "
             + " ".join(f"{n:>7}" for n in afm.actuator_names)
             + f" {'pred (µm)':>10} {'pred std':>9} {'noise std':>9} {'r_e (µm²)':>10} {'AFM std':>8}  quieter?")
