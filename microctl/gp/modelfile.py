@@ -224,7 +224,7 @@ def _check_noise_model(path: Path, kw: dict) -> None:
     except KeyError as exc:
         raise DataError(f"{path}: {exc.args[0]} (a model file of another microctl?)") from None
     have = tuple(k for k in FEATURE_ARRAYS if kw.get(k) is not None)
-    if set(have) != set(noise.stored_arrays):
+    if set(have) != set(noise.stored_arrays) and not (noise.features_optional and not have):
         raise DataError(f"{path}: malformed model file: noise model {name!r} stores "
                         f"{', '.join(noise.stored_arrays) or 'no feature arrays'}, the file has "
                         f"{', '.join(have) or 'none'}")

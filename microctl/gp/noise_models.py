@@ -50,6 +50,8 @@ class NoiseModel:
     uses_features: ClassVar[bool] = True
     #: Model-file arrays of g's prior mean this model stores (all of them present together).
     stored_arrays: ClassVar[tuple[str, ...]] = FEATURE_ARRAYS
+    #: Whether a fitted model may also hold none of them (a constant prior mean).
+    features_optional: ClassVar[bool] = False
 
     @staticmethod
     def transform(z: Any) -> Any:
@@ -132,6 +134,8 @@ class DictionaryNoise(NoiseModel):
     (``sq``, ``abs``, ``sat``, ``up``, ``down``, ``bump``, ``exp``; :mod:`microctl.gp.shaped_features`)."""
 
     name = "dictionary"
+    #: A selection that found no source leaves the constant prior mean (no feature arrays).
+    features_optional: ClassVar[bool] = True
 
     def __init__(self, transform: ShapeTransform | None = None):
         self._transform = transform
@@ -148,6 +152,9 @@ class DictionaryNoise(NoiseModel):
 
     def prior_mean(self, model: Any) -> LogVarianceMean:
         p = 0 if model.g_feature_matrix is None else int(np.asarray(model.g_feature_matrix).shape[0])
+        if p == 0:  # no source selected: the paper's constant prior mean
+            d = int(model.X.shape[1])
+            return LogVarianceMean(np.zeros((0, d)), np.zeros(0), model.g_mu0, np.zeros(0), model.g_mean_coef_cov)
         if len(model.g_feature_shapes) != p or len(model.g_feature_params) != p:
             raise ValueError(f"dictionary noise model: {len(model.g_feature_shapes)} shapes and "
                              f"{len(model.g_feature_params)} parameter pairs for {p} features")

@@ -245,8 +245,8 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     record = {"selected": names, "gains_nats": [float(g) for g in sel.gains],
               "p_adjusted": [float(p) for p in sel.p_values], "alpha": SELECTION_ALPHA,
               "candidates": len(cands.names) + 1}
-    if not names:
-        model = _fit(data, afm, st, None, "hgp", max_time)
+    if not names:  # the constant prior mean, under the dictionary's name (it chose no source)
+        model = replace(_fit(data, afm, st, None, "hgp", max_time), noise_model_name="dictionary")
     else:
         feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
         model = _fit(data, afm, st, feats, "dictionary", max_time)
@@ -272,15 +272,16 @@ def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
     if selection is not None:
         out["selection"] = selection
     if model.noise_model == "dictionary":
-        c = np.exp(np.asarray(model.g_log_feature_coef))
         out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
+        if model.g_feature_matrix is None:
+            out["sources"] = {}
+            return out
+        c = np.exp(np.asarray(model.g_log_feature_coef))
         out["sources"] = {name: {"shape": shape, "params": list(par), "coef_um2": float(ci * model.y_scale**2)}
                           for name, shape, par, ci in zip(model.g_feature_names, model.g_feature_shapes,
                                                           model.g_feature_params, c)}
         return out
     if model.noise_model != "physical":
-        if selection is not None:
-            out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
         return out
     sens_all = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
     sens = [sens_all[afm.actuator_names.index(f.removeprefix("d"))] for f in model.g_feature_names]

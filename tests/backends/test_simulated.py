@@ -54,7 +54,7 @@ def test_friction_scatter_grows_with_motion():
         u = np.array([0.0, rx, 0.0])  # q = K u: q2 = -15 rx (must be >=0) -> use z offset
         u[0] = 15 * rx
         t = []
-        for _ in range(200):
+        for _ in range(1000):
             sim.move(np.zeros(3))
             t.append(sim.move(u).t_um)
         spread.append(np.std(t))
@@ -62,7 +62,9 @@ def test_friction_scatter_grows_with_motion():
         # independent answer: rigid-ish sensitivity of t to q4 (pinv) times std·|Δq4|
         sens = (afm.w @ np.linalg.pinv(afm.K))[3]
         assert np.std(t) == pytest.approx(abs(sens) * 0.3 * dq4, rel=0.2)
-        assert sim.true_var(np.zeros(5), u) == pytest.approx((sens * 0.3 * dq4) ** 2, rel=0.05)
+        # the truth (exact, or Monte Carlo where a ball may change contact under this much
+        # stick-slip) against the 1000 executed moves: 4 standard errors of a sample variance
+        assert sim.true_var(np.zeros(5), u) == pytest.approx(np.var(t, ddof=1), rel=4 * np.sqrt(2 / 999))
     assert spread[1] > 3 * spread[0]
 
 

@@ -62,7 +62,7 @@ def test_solve_json(trained, capsys):
     cmp = out["vs_baseline"]
     assert out["credibly_quieter_than_baseline"] is (cmp["prob_quieter"] >= cmp["level"]) and cmp["level"] == 0.95
     assert cmp["prob_quieter"] == pytest.approx(norm.cdf(-cmp["log_ratio_mean"] / cmp["log_ratio_std"]), abs=1e-9)
-    assert out["r_e"] == "noise_quantile" and out["kappa"] == 1.645 and out["model"]["noise_model"] == "physical"
+    assert out["r_e"] == "noise_quantile" and out["kappa"] == 1.645 and out["model"]["noise_model"] == "dictionary"
     assert out["baseline"]["predicted_by"] == "eafm"
 
 
@@ -83,9 +83,15 @@ def test_train_options_and_noise_report(trained, capsys, tmp_path):
     assert rc == 0 and "noise model hgp" in err
     m = FittedVHGPR.load(out)
     assert m.noise_model == "hgp" and m.f_log_linear_vars is None
-    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "p.npz"), "--restarts", "1"])
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "p.npz"), "--restarts", "1",
+               "--noise-model", "physical"])
     err = capsys.readouterr().err
     assert rc == 0 and "stick-slip std per µm moved" in err and "q4" in err and "SE part" in err
+    # the default: the planted log's scatter is uniform (0.05 µm), so the dictionary selects no source
+    rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "d.npz"), "--restarts", "1"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "noise model dictionary: no noise source selected among 49 candidates" in err
+    assert FittedVHGPR.load(tmp_path / "d.npz").noise_model == "dictionary"
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "x.npz"), "--no-linear-trend",
                "--se", "off"])
     assert rc == 2 and "--se off needs the linear trend" in capsys.readouterr().err

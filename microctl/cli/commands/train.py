@@ -90,13 +90,13 @@ def describe_noise(summary: dict) -> str:
     """One line: the noise model; for ``dictionary`` the sources the data selected, for ``physical``
     the floor and per-actuator stick-slip (± standard error)."""
     sel = summary.get("selection")
+    if summary["noise_model"] == "dictionary" and not summary["sources"]:
+        return (f"noise model dictionary: no noise source selected among {sel['candidates']} candidates "
+                f"(floor std {summary['floor_std_um']:.4f} µm everywhere; g's GP models the rest)")
     if summary["noise_model"] == "dictionary":
         src = ", ".join(summary["sources"])
         return (f"noise model dictionary: floor std {summary['floor_std_um']:.4f} µm; sources selected by the data "
-                f"({sel['candidates']} candidates): {src}")
-    if sel is not None:
-        return (f"noise model dictionary: no source selected among {sel['candidates']} candidates "
-                f"(scatter uniform: floor std {summary['floor_std_um']:.4f} µm, g's GP for the rest)")
+                f"among {sel['candidates']} candidates: {src}")
     if summary["noise_model"] != "physical":
         return "noise model hgp (the paper's: g ~ GP(mu0, K_g))"
     acts = ", ".join(f"{name} {a['friction_std_per_um']:.3f} ± {a['friction_std_per_um_se']:.3f}"
