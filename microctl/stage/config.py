@@ -128,6 +128,11 @@ class SerialBackend:
         return dict(self.axes)[actuator]
 
 
+#: The backend kinds a stage config can name (each has its class in
+#: :data:`microctl.backends.base.BACKENDS`).
+BACKEND_KINDS = ("simulated", "serial")
+
+
 @dataclass(frozen=True)
 class Backend:
     """Which stage the commands drive.
@@ -374,8 +379,8 @@ def _parse_backend(ctx: FieldReader, raw: Any, stage: Stage) -> Backend:
         return Backend()
     raw = ctx.mapping(raw, "backend", ["kind", "simulated", "serial"])
     kind = raw.get("kind", "simulated")
-    if kind not in ("simulated", "serial"):
-        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: simulated, serial")
+    if kind not in BACKEND_KINDS:
+        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: {', '.join(BACKEND_KINDS)}")
     s = ctx.mapping(
         raw.get("simulated"),
         "backend.simulated",
