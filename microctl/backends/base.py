@@ -19,7 +19,7 @@ from microctl.errors import BackendError, ConfigError
 
 # Measurement lives beside the log that records it; re-exported here for compatibility.
 from microctl.measurement.log import Measurement  # noqa: F401
-from microctl.stage.config import BACKEND_KINDS, StageConfig
+from microctl.stage.config import StageConfig
 from microctl.stage.kinematics import inverse_kinematics_matrix, tool_vector
 
 #: Commands this close outside a range (round-off of K u at a bound) are snapped onto the

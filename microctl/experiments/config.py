@@ -18,7 +18,7 @@ from typing import Any, Callable, Mapping
 
 from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
-from microctl.experiments import controllers as registry
+import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
 from microctl.models.training import ResidualModelSettings
 from microctl.stage.config import StageConfig, load_stage_config, load_yaml

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from microctl.experiments import controllers as registry
+import microctl.experiments.controllers as registry
 
 FIG5, FIG6 = "fig5_absolute.png", "fig6_incremental.png"
 

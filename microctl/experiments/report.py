@@ -24,7 +24,7 @@ import yaml
 from scipy.special import ndtr
 
 from microctl.util import stats
-from microctl.experiments import controllers as registry
+import microctl.experiments.controllers as registry
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
 from microctl.util.io import to_jsonable, write_json

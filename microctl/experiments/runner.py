@@ -30,7 +30,7 @@ from microctl.backends import make_backend
 from microctl.backends.base import StageBackend
 from microctl.control.controller import ControlResult, OptimalController
 from microctl.errors import BackendError, SolveError
-from microctl.experiments import controllers as registry
+import microctl.experiments.controllers as registry
 from microctl.experiments.config import ExperimentConfig
 from microctl.measurement.design import space_filling_moves, training_moves
 from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
