@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from microctl.backends.base import StageBackend
+from microctl.backends.base import StageBackend, register_backend
 from microctl.errors import BackendError
 from microctl.measurement.log import Measurement
 from microctl.models.extended import ExtendedForwardModel, ExtendedPrediction
@@ -30,6 +30,7 @@ from microctl.stage.config import StageConfig
 from microctl.stage.physics import ZERO_STATE_DIRECTION
 
 
+@register_backend("simulated")
 class SimulatedStage(StageBackend):
     """The simulated stage with the effects of ``config.backend.simulated``.
 
