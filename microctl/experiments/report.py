@@ -23,10 +23,11 @@ import numpy as np
 import yaml
 from scipy.special import ndtr
 
-from microctl.util import stats
 import microctl.experiments.controllers as registry
+from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
+from microctl.util import stats
 from microctl.util.io import to_jsonable, write_json
 
 #: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
@@ -412,7 +413,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
              f"({tr.moves} designed + {tr.refine_rounds} refinement rounds, strategy `{tr.refine_strategy}`), "
              f"noise model `{tr.noise_model}`, linear trend {'on' if tr.linear_trend else 'off'}, "
              f"{tr.restarts} VHGPR restarts; controller r_e = `{cfg.controller.r_e}`"
-             + (f" (kappa {cfg.controller.kappa:g})" if cfg.controller.r_e == "noise_quantile" else "") + "."
+             + (f" (kappa {cfg.controller.kappa:g})" if R_E_SUMMARIES[cfg.controller.r_e].uses_kappa else "") + "."
              + (f" Seeds offset by {cfg.seed_offset} from the file's." if cfg.seed_offset else ""))
     L.append("")
     L += bars_section(results)
