@@ -200,22 +200,14 @@ def test_the_checks_see_what_they_must():
     assert _circles({"a": {"b"}, "b": set()}) == []
 
 
-_MODULES_OVER = _oversized_modules()
-_FUNCTIONS_OVER = _oversized_functions()
-#: The size checks failed on main when this test was added (modules and functions other branches were
-#: still splitting): they are expected failures until those merge. Integrator: delete the two
-#: ``xfail`` markers once both tests pass (``pytest -rX`` reports them XPASS then).
-_STILL_SPLITTING = "still over the limit (other branches are splitting them; remove this xfail once merged): "
-
-
-@pytest.mark.xfail(strict=False, reason=_STILL_SPLITTING + "; ".join(_MODULES_OVER))
 def test_modules_at_most_600_lines():
-    assert not _MODULES_OVER, f"modules over {MAX_MODULE_LINES} lines:\n" + "\n".join(_MODULES_OVER)
+    over = _oversized_modules()
+    assert not over, f"modules over {MAX_MODULE_LINES} lines:\n" + "\n".join(over)
 
 
-@pytest.mark.xfail(strict=False, reason=_STILL_SPLITTING + "; ".join(_FUNCTIONS_OVER))
 def test_functions_at_most_80_lines():
-    assert not _FUNCTIONS_OVER, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(_FUNCTIONS_OVER)
+    over = _oversized_functions()
+    assert not over, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(over)
 
 
 def _is_slow(decorators: list[ast.expr]) -> bool:

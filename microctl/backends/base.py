@@ -11,10 +11,11 @@ range; it is never clipped and never executed in part.
 from __future__ import annotations
 
 import abc
+from typing import Callable, TypeVar
 
 import numpy as np
 
-from microctl.errors import BackendError
+from microctl.errors import BackendError, ConfigError
 
 # Measurement lives beside the log that records it; re-exported here for compatibility.
 from microctl.measurement.log import Measurement  # noqa: F401
@@ -123,3 +124,52 @@ class StageBackend(abc.ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# --------------------------------------------------------------------------------------
+# the registry of backends by kind
+# --------------------------------------------------------------------------------------
+
+#: ``backend.kind`` -> backend class, filled by :func:`register_backend` (the kinds the stage
+#: config accepts, :data:`~microctl.stage.config.BACKEND_KINDS`, are all registered:
+#: ``tests/backends`` checks it).
+BACKENDS: dict[str, type[StageBackend]] = {}
+
+_B = TypeVar("_B", bound=type[StageBackend])
+
+
+def register_backend(kind: str) -> Callable[[_B], _B]:
+    """Class decorator: register a :class:`StageBackend` subclass as the backend of ``backend.kind: kind``."""
+
+    def add(cls: _B) -> _B:
+        if kind in BACKENDS:
+            raise ValueError(f"backend kind '{kind}' is registered already ({BACKENDS[kind].__name__})")
+        BACKENDS[kind] = cls
+        return cls
+
+    return add
+
+
+def make_backend(config: StageConfig, **kwargs) -> StageBackend:
+    """The backend ``config.backend.kind`` names, opened and ready to move.
+
+    Parameters
+    ----------
+    config : StageConfig
+    **kwargs
+        Passed to the backend's constructor (e.g. ``seed`` for the simulated stage).
+
+    Returns
+    -------
+    StageBackend
+
+    Raises
+    ------
+    ConfigError
+        No backend is registered for the kind.
+    """
+    kind = config.backend.kind
+    cls = BACKENDS.get(kind)
+    if cls is None:
+        raise ConfigError(f"{config.source}: backend.kind: '{kind}' is not a backend; valid: {', '.join(BACKENDS)}")
+    return cls(config, **kwargs)

@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from microctl.backends.base import StageBackend
+from microctl.backends.base import StageBackend, register_backend
 from microctl.errors import BackendError, ConfigError
 from microctl.measurement.log import Measurement
 from microctl.stage.config import StageConfig
@@ -111,6 +111,7 @@ class _Port:
             pass
 
 
+@register_backend("serial")
 class SerialStage(StageBackend):
     """The stage driven through serial devices (``backend.kind: serial``).
 

@@ -28,7 +28,7 @@ import itertools
 
 import numpy as np
 
-from microctl.backends.base import StageBackend
+from microctl.backends.base import StageBackend, register_backend
 from microctl.errors import BackendError
 from microctl.measurement.log import Measurement
 from microctl.models.extended import ExtendedForwardModel, ExtendedPrediction
@@ -88,6 +88,7 @@ def enumerated_equilibrium(model, h: np.ndarray) -> np.ndarray:
     return p_out
 
 
+@register_backend("simulated")
 class SimulatedStage(StageBackend):
     """The simulated stage with the effects of ``config.backend.simulated``.
 

@@ -318,65 +318,14 @@ def fit_mean(
     -------
     MeanFit
     """
-    specs = tuple(specs)
-    w = np.ones(data.n) if weights is None else np.asarray(weights, dtype=float)
-    w2 = w * w
-    cuts = np.cumsum([0, *[s.k for s in specs]])
-    nuis = nuisances(specs)
-    k_par = int(cuts[-1])
-
-    def zero_of(pred: np.ndarray) -> float:
-        return float(w2 @ (data.t - pred) / w2.sum()) if zero else 0.0
-
-    def split_x(x: np.ndarray) -> tuple[Effects, Stage, dict]:
-        eff = merge_effects(base, [(s, x[cuts[j]:cuts[j + 1]]) for j, s in enumerate(specs)])
-        nv = {nu.name: float(x[k_par + j]) for j, nu in enumerate(nuis)}
-        return eff, with_nuisance(stage, nv), nv
-
-    def pred_of(x: np.ndarray) -> np.ndarray:
-        eff, st, _ = split_x(x)
-        return predict(st, eff, data)
-
-    def resid(x: np.ndarray) -> np.ndarray:
-        try:
-            pred = pred_of(x)
-        except SolveError:  # pragma: no cover - a pathological parameter: make it unattractive
-            return w * np.full(data.n, 1e3)
-        return w * (pred + zero_of(pred) - data.t)
-
-    def zero_se(rss: float, k: int) -> float:
-        return float(np.sqrt(rss / max(data.n - k, 1) / w2.sum())) if zero else 0.0
-
-    if not specs:
-        pred = predict(stage, base, data)
-        z = zero_of(pred)
-        r = w * (pred + z - data.t)
-        rss = float(r @ r)
-        return MeanFit((), np.zeros(0), np.zeros(0), rss, data.n, pred + z, base, zero_um=z,
-                       zero_se_um=zero_se(rss, int(zero)), zero_fitted=zero, stage=stage,
-                       jac=np.zeros((data.n, 0)))
-
+    pb = _Problem.of(stage, base, tuple(specs), data, weights, zero)
+    if not pb.specs:
+        return pb.base_fit()
+    specs, nuis, k_par, w = pb.specs, pb.nuis, pb.k_par, pb.w
     lo = np.concatenate([np.concatenate([s.lower for s in specs]), [nu.lo for nu in nuis]])
     hi = np.concatenate([np.concatenate([s.upper for s in specs]), [nu.hi for nu in nuis]])
-    starts = np.concatenate([s.start_from(base) for s in specs]).astype(float)
-    x_par = starts if theta0 is None else np.asarray(theta0, dtype=float).copy()
-    nu0 = {nu.name: nu.value(stage) for nu in nuis}
-    nu0.update({k: v for k, v in (nuisance0 or {}).items() if k in nu0})
-    x0 = np.concatenate([x_par, [nu0[nu.name] for nu in nuis]])
-    # specs started at their healthy value with a starting grid: start from the best grid point
-    for j, s in enumerate(specs):
-        if len(s.grid) <= 1 or not np.allclose(x0[cuts[j]:cuts[j + 1]], s.x0):
-            continue
-        slots = list(range(cuts[j], cuts[j + 1])) + [k_par + nuis.index(nu) for nu in s.nuisance]
-        best, best_rss = x0[slots].copy(), np.inf
-        for g in s.grid:
-            x0[slots] = g
-            r = resid(np.clip(x0, lo, hi))
-            if r @ r < best_rss:
-                best, best_rss = np.array(g, dtype=float), float(r @ r)
-        x0[slots] = best
-    x0 = np.clip(x0, lo, hi)
-    res = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=FIT_TOL, ftol=FIT_TOL,
+    x0 = pb.start(theta0, nuisance0, lo, hi)
+    res = least_squares(pb.resid, x0, bounds=(lo, hi), method="trf", x_scale="jac", xtol=FIT_TOL, ftol=FIT_TOL,
                         gtol=FIT_TOL, max_nfev=200 * len(x0))
     x = res.x
     r = res.fun
@@ -384,13 +333,107 @@ def fit_mean(
     k = x.size + int(zero)
     sigma2 = rss / max(data.n - k, 1)
     se, deficient = _stderr(res.jac, sigma2)
-    eff, st, nv = split_x(x)
+    eff, st, nv = pb.split_x(x)
     fitted = _prediction(st, eff, data)  # one equilibrium solve for the readings and the contacts
     pred = fitted.t
-    z = zero_of(pred)
+    z = pb.zero_of(pred)
     jac = res.jac / np.where(w > 0, w, 1.0)[:, None]
     # a ball out of contact at some move, with no cause that lifts balls: not a physical explanation
     unphysical = (not any(s.cls.lifts_balls for s in specs)) and not bool(fitted.active.all())
     return MeanFit(specs, x[:k_par], se[:k_par], rss, data.n, pred + z, eff, deficient, res.message, z,
-                   zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st, jac,
-                   unphysical)
+                   pb.zero_se(rss, k), zero, nv, {nu.name: float(se[k_par + j]) for j, nu in enumerate(nuis)}, st,
+                   jac, unphysical)
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The least-squares problem of :func:`fit_mean`: the parameter vector x = [θ of every spec; nuisances].
+
+    Attributes
+    ----------
+    w, w2 : ndarray, shape (n,)
+        Weights (1/std of each reading) and their squares.
+    cuts : ndarray, shape (len(specs) + 1,)
+        Spec j's parameters are ``x[cuts[j]:cuts[j + 1]]``.
+    nuis : tuple
+        The stage-physics nuisances fitted with the specs (after the k_par cause parameters).
+    """
+
+    stage: Stage
+    base: Effects
+    specs: tuple
+    data: DiagnosisData
+    zero: bool
+    w: np.ndarray
+    w2: np.ndarray
+    cuts: np.ndarray
+    nuis: tuple
+    k_par: int
+
+    @classmethod
+    def of(cls, stage, base, specs, data, weights, zero) -> "_Problem":
+        w = np.ones(data.n) if weights is None else np.asarray(weights, dtype=float)
+        w2 = w * w
+        cuts = np.cumsum([0, *[s.k for s in specs]])
+        nuis = nuisances(specs)
+        k_par = int(cuts[-1])
+        return cls(stage, base, specs, data, zero, w, w2, cuts, nuis, k_par)
+
+    def zero_of(self, pred: np.ndarray) -> float:
+        """The profiled gauge zero: the weighted mean residual (0 when not fitted)."""
+        return float(self.w2 @ (self.data.t - pred) / self.w2.sum()) if self.zero else 0.0
+
+    def split_x(self, x: np.ndarray) -> tuple[Effects, Stage, dict]:
+        """x -> (effects, stage with the nuisances, nuisance values)."""
+        cuts, k_par = self.cuts, self.k_par
+        eff = merge_effects(self.base, [(s, x[cuts[j]:cuts[j + 1]]) for j, s in enumerate(self.specs)])
+        nv = {nu.name: float(x[k_par + j]) for j, nu in enumerate(self.nuis)}
+        return eff, with_nuisance(self.stage, nv), nv
+
+    def pred_of(self, x: np.ndarray) -> np.ndarray:
+        eff, st, _ = self.split_x(x)
+        return predict(st, eff, self.data)
+
+    def resid(self, x: np.ndarray) -> np.ndarray:
+        """Weighted residuals, shape (n,)."""
+        try:
+            pred = self.pred_of(x)
+        except SolveError:  # pragma: no cover - a pathological parameter: make it unattractive
+            return self.w * np.full(self.data.n, 1e3)
+        return self.w * (pred + self.zero_of(pred) - self.data.t)
+
+    def zero_se(self, rss: float, k: int) -> float:
+        return float(np.sqrt(rss / max(self.data.n - k, 1) / self.w2.sum())) if self.zero else 0.0
+
+    def base_fit(self) -> MeanFit:
+        """No spec: the base model with only the gauge zero fitted."""
+        data, w, zero = self.data, self.w, self.zero
+        pred = predict(self.stage, self.base, data)
+        z = self.zero_of(pred)
+        r = w * (pred + z - data.t)
+        rss = float(r @ r)
+        return MeanFit((), np.zeros(0), np.zeros(0), rss, data.n, pred + z, self.base, zero_um=z,
+                       zero_se_um=self.zero_se(rss, int(zero)), zero_fitted=zero, stage=self.stage,
+                       jac=np.zeros((data.n, 0)))
+
+    def start(self, theta0, nuisance0, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """The starting x (clipped to [lo, hi]); a spec started at its healthy value with a
+        starting grid starts from the best grid point."""
+        specs, nuis, cuts, k_par, stage = self.specs, self.nuis, self.cuts, self.k_par, self.stage
+        starts = np.concatenate([s.start_from(self.base) for s in specs]).astype(float)
+        x_par = starts if theta0 is None else np.asarray(theta0, dtype=float).copy()
+        nu0 = {nu.name: nu.value(stage) for nu in nuis}
+        nu0.update({k: v for k, v in (nuisance0 or {}).items() if k in nu0})
+        x0 = np.concatenate([x_par, [nu0[nu.name] for nu in nuis]])
+        for j, s in enumerate(specs):
+            if len(s.grid) <= 1 or not np.allclose(x0[cuts[j]:cuts[j + 1]], s.x0):
+                continue
+            slots = list(range(cuts[j], cuts[j + 1])) + [k_par + nuis.index(nu) for nu in s.nuisance]
+            best, best_rss = x0[slots].copy(), np.inf
+            for g in s.grid:
+                x0[slots] = g
+                r = self.resid(np.clip(x0, lo, hi))
+                if r @ r < best_rss:
+                    best, best_rss = np.array(g, dtype=float), float(r @ r)
+            x0[slots] = best
+        return np.clip(x0, lo, hi)

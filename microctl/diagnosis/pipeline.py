@@ -233,7 +233,87 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     afm = AnalyticForwardModel(stage)
     all_data = data
 
-    # ---- outliers: set aside by a robust screen, then name on the rest and test every row -------
+    op = _outlier_passes(stage, all_data, set_aside, a_each, seed, progress)
+    data, named = op.data, op.named
+    sel, noise, weights, left = named.sel, named.noise, named.weights, named.left
+    afm_resid = data.t - afm.t_of(data.u)
+    model_resid = data.t - sel.baseline.pred
+    resid = data.t - sel.final.pred
+    timing["name_s"] = time.perf_counter() - t_start
+
+    tests0, p_disc, significant = _show(data, named, model_resid, alpha, seed)
+
+    # ---- unexplained structure left over ---------------------------------------------------------
+    p_left = left.p_value
+    unexplained = bool(significant and left.significant)
+    timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
+    accepted_mean, mean_entries = _mean_causes(sel, left, unexplained)
+
+    ext_cfg = _extend(config, sel, noise)
+
+    g, control = None, None
+    if gain:
+        g, control = _gain(config, ext_cfg, data, named, timing, holdout=holdout, folds=folds, seed=seed, gp=gp,
+                           progress=progress)
+    timing["total_s"] = time.perf_counter() - t_start
+
+    where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
+    report = {
+        "rows": all_data.n,
+        "rows_fitted": data.n,
+        "source": data.source,
+        "discrepancy": {
+            "significant": significant,
+            "afm_rmse_um": float(np.sqrt(np.mean(afm_resid**2))),
+            "model_rmse_um": float(np.sqrt(np.mean(model_resid**2))),
+            "extended_rmse_um": float(np.sqrt(np.mean(resid**2))),
+            "noise_std_um": float(noise.fit.std_um),
+            "p_value": p_disc,
+            "alpha": alpha,
+            "test": ("Bonferroni minimum of: F-tests of the model residual against generic bases, "
+                     "best-cause likelihood ratio, GP-vs-white-noise likelihood ratio, Breusch-Pagan on abs(Δq)"),
+            "tests": [t.to_dict() for t in tests0],
+            "where": where,
+            "heteroscedasticity": tests0[3].to_dict(),
+        },
+        "accepted": {"mean": accepted_mean, "noise": list(noise.accepted)},
+        "mean_causes": mean_entries,
+        "noise_causes": noise.entries,
+        "noise_summary": _noise_summary(sel, noise, data),
+        "selection": _selection_section(sel, weights),
+        "unexplained": {"significant": unexplained, "p_value": p_left, "tests": left.tests(),
+                        "guard": None if named.guard is None else named.guard.to_dict()},
+        "outliers": _outliers_section(op, all_data, afm, stage),
+        "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
+        "nuisance": _nuisance_section(sel),
+        "corrections": ext_cfg.stage.corrections.to_dict(),
+        "physics_nuisance": ({k: float(v) for k, v in sel.final.nuisance.items()} if sel.final.nuisance else None),
+        "timing_s": timing,
+    }
+    if g is not None:
+        report["gain"] = g.to_dict()
+    if control is not None:
+        report["control"] = control
+    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g,
+                     {"all_data": all_data, "outliers": op.out_mask, "named": named, "smooth": op.smooth})
+
+
+@dataclass(frozen=True)
+class _OutlierPasses:
+    """What :func:`_outlier_passes` found: the fitted rows, the named model on them, the row tests."""
+
+    data: DiagnosisData
+    named: Named
+    rows: RowTest
+    smooth: np.ndarray
+    out_mask: np.ndarray
+    passes: list
+    converged: bool
+
+
+def _outlier_passes(stage, all_data, set_aside, a_each, seed, progress) -> _OutlierPasses:
+    """Outliers: set aside by a robust screen, then name on the rest and test every row, until
+    the outlier set repeats (at most :data:`MAX_OUTLIER_PASSES` passes)."""
     forced = np.zeros(all_data.n, dtype=bool) if set_aside is None else np.asarray(set_aside, dtype=bool)
     sane = all_data.subset(np.flatnonzero(~forced))  # rows set aside never enter a fit
     configured = fit_mean(stage, stage.corrections, [], sane)
@@ -250,13 +330,15 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
         if converged:
             break
         out_mask = rows.outlier | forced
-    sel, noise, weights, left = named.sel, named.noise, named.weights, named.left
-    afm_resid = data.t - afm.t_of(data.u)
-    model_resid = data.t - sel.baseline.pred
-    resid = data.t - sel.final.pred
-    timing["name_s"] = time.perf_counter() - t_start
+    return _OutlierPasses(data, named, rows, smooth, out_mask, passes, converged)
 
-    # ---- 1. show: significance of the discrepancy ------------------------------------------
+
+def _show(data, named, model_resid, alpha, seed) -> tuple[list, float, bool]:
+    """1. show: significance of the discrepancy (Bonferroni minimum of the four tests).
+
+    Returns the tests (structure F-test, best-cause LR, GP LR, Breusch-Pagan), the p-value and
+    whether the discrepancy is significant."""
+    sel, noise, weights = named.sel, named.noise, named.weights
     w0 = np.ones(data.n) if weights is None else weights
     f_test0 = sel.steps[0].structure
     lr_best0 = Test("best candidate likelihood ratio (Bonferroni over candidates)",
@@ -270,124 +352,109 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     tests0 = [f_test0, lr_best0, gp0, het0]
     p_disc = float(min(1.0, N_DISCREPANCY_TESTS * min(t.p_value for t in tests0)))
     significant = bool(p_disc < alpha or sel.accepted or noise.fit.friction)
+    return tests0, p_disc, significant
 
-    # ---- unexplained structure left over ---------------------------------------------------------
-    p_left = left.p_value
-    unexplained = bool(significant and left.significant)
-    timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
 
+def _mean_causes(sel, left, unexplained: bool) -> tuple[list, list]:
+    """The accepted mean causes and the report's entries, with ``unexplained`` after the accepted ones."""
     mean_entries = list(sel.entries)
     accepted_mean = [s.cause for s in sel.accepted]
     if unexplained:
         accepted_mean.append("unexplained")
         mean_entries.insert(len(sel.accepted), {
-            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": None, "p_value": p_left,
+            "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": None, "p_value": left.p_value,
             "equivalent": [], "accepted": True, "tests": left.tests(),
         })
+    return accepted_mean, mean_entries
 
-    # ---- 3. extend -------------------------------------------------------------------------
-    # the accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
-    # compression of a contact loss): the extended model needs both to reproduce the fit
-    # and the accepted noise causes (stick-slip per actuator): the residual model's noise features
-    # (microctl.models.training.noise_features_for), so the extended EAFM's controller uses them
+
+def _extend(config, sel, noise):
+    """3. extend: the extended stage config.
+
+    The accepted causes, and the stage-physics nuisances fitted with them (e.g. the preload
+    compression of a contact loss): the extended model needs both to reproduce the fit; and the
+    accepted noise causes (stick-slip per actuator): the residual model's noise features
+    (microctl.models.training.noise_features_for), so the extended EAFM's controller uses them.
+    """
     friction = tuple(ActuatorFriction(actuator=int(a), std_per_um=float(sd))
                      for a, sd in zip(noise.fit.friction, noise.fit.std_per_um))
     ext_effects = sel.final.effects.with_(*friction) if friction else sel.final.effects
-    ext_cfg = replace(config, stage=replace(sel.final.stage, corrections=ext_effects))
+    return replace(config, stage=replace(sel.final.stage, corrections=ext_effects))
 
-    # ---- 4. gain -----------------------------------------------------------------------------
-    g = None
-    if gain:
-        t0 = time.perf_counter()
-        g = prediction_gain(stage, data, sel.accepted, sel.final.theta, nuisance=sel.final.nuisance, holdout=holdout,
-                            friction=noise.fit.friction,
-                            folds=folds, seed=seed, gp=gp, progress=progress)
-        timing["gain_s"] = time.perf_counter() - t0
+
+def _gain(config, ext_cfg, data, named, timing: dict, *, holdout, folds, seed, gp, progress):
+    """4. gain: the held-out prediction gain, and (when the extension changes the stage) what it
+    changes in control terms. Adds ``gain_s`` (and ``control_s``) to ``timing``."""
+    sel, noise = named.sel, named.noise
+    t0 = time.perf_counter()
+    g = prediction_gain(config.stage, data, sel.accepted, sel.final.theta, nuisance=sel.final.nuisance,
+                        holdout=holdout, friction=noise.fit.friction,
+                        folds=folds, seed=seed, gp=gp, progress=progress)
+    timing["gain_s"] = time.perf_counter() - t0
     control = None
-    if gain and not ext_effects.is_empty():
+    if not ext_cfg.stage.corrections.is_empty():
         # what the extension changes in control terms: plain vs extended EAFM controller
         t0 = time.perf_counter()
         control = control_comparison(config, ext_cfg, data, seed=seed)
         timing["control_s"] = time.perf_counter() - t0
-    timing["total_s"] = time.perf_counter() - t_start
+    return g, control
 
-    where = where_analysis(afm_resid, data, stage.actuator_names, stage.dof, stage.tool.name)
-    # share of the mean reading variance of each accepted noise cause (the printed noise line)
+
+def _noise_summary(sel, noise, data) -> dict:
+    """Share of the mean reading variance of each accepted noise cause (the printed noise line)."""
     J = _sensitivity(sel.final, data)
     share = {"homoscedastic": noise.fit.std_um**2}
     for j, a in enumerate(noise.fit.friction):
         share[f"actuator_friction[{a}]"] = float(np.mean((J[:, a - 1] * noise.fit.std_per_um[j] * data.dq[:, a - 1]) ** 2))
     tot = sum(share.values()) or 1.0
     share = {k: float(v / tot) for k, v in share.items()}
-    noise_std = noise.fit.std_um
-    report = {
-        "rows": all_data.n,
-        "rows_fitted": data.n,
-        "source": data.source,
-        "discrepancy": {
-            "significant": significant,
-            "afm_rmse_um": float(np.sqrt(np.mean(afm_resid**2))),
-            "model_rmse_um": float(np.sqrt(np.mean(model_resid**2))),
-            "extended_rmse_um": float(np.sqrt(np.mean(resid**2))),
-            "noise_std_um": float(noise_std),
-            "p_value": p_disc,
-            "alpha": alpha,
-            "test": ("Bonferroni minimum of: F-tests of the model residual against generic bases, "
-                     "best-cause likelihood ratio, GP-vs-white-noise likelihood ratio, Breusch-Pagan on abs(Δq)"),
-            "tests": [t.to_dict() for t in tests0],
-            "where": where,
-            "heteroscedasticity": het0.to_dict(),
-        },
-        "accepted": {"mean": accepted_mean, "noise": list(noise.accepted)},
-        "mean_causes": mean_entries,
-        "noise_causes": noise.entries,
-        "noise_summary": {"dominant": max(share, key=share.get), "variance_share": share,
-                          "note": "share of the mean reading variance over the moves (friction through the contact "
-                                  "sensitivity)"},
-        "selection": {
-            "stop_reason": sel.stop_reason,
-            "weighted": weights is not None,
-            "steps": [
-                {"best": s.best, "p_value": s.p_value, "accepted": s.accepted, "equivalent": list(s.equivalent),
-                 "structure_p_value": s.structure.p_value, "current_bic": s.current.bic,
-                 "best_bic": (s.fits[s.best].bic if s.best else None)}
-                for s in sel.steps
-            ],
-        },
-        "unexplained": {"significant": unexplained, "p_value": p_left, "tests": left.tests(),
-                        "guard": None if named.guard is None else named.guard.to_dict()},
-        "outliers": {
-            "rows": [{**ids, **cell, "z": float(rows.z[ids["index"]])} for ids, cell in
-                     zip(all_data.row_ids(np.flatnonzero(out_mask)),
-                         suspect_cells(all_data, afm.K, out_mask, stage.actuator_names, stage.tool.name))],
-            "count": int(out_mask.sum()),
-            "test": ("residual of the named model (less the flexible term where structure is left), "
-                     "standardised by the noise model and the robust scale of the fitted rows; "
-                     "Bonferroni over rows"),
-            "critical_z": rows.critical,
-            "passes": len(passes),
-            "converged": converged,
-            "note": "left out of every fit and of the RMSEs and tests below; index is 0-based, line is the "
-                    "CSV line (header = line 1)",
-        },
-        "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
-        "nuisance": {
-            "gauge_zero_um": float(sel.final.zero_um),
-            "stderr": {"gauge_zero_um": float(sel.final.zero_se_um),
-                       **{k: (float(v) if np.isfinite(v) else None) for k, v in sel.final.nuisance_se.items()}},
-            **{k: float(v) for k, v in sel.final.nuisance.items()},
-            "note": ("gauge_zero_um: constant offset of the readings (the gauge zero is one noisy reading at the "
-                     "zero state); fitted in every mean model, not a stage cause, not written to extended.yaml. "
-                     "Stage-physics nuisances fitted with a cause (preload_compression_um with contact_loss) are "
-                     "written to extended.yaml's stage.physics"),
-        },
-        "corrections": ext_cfg.stage.corrections.to_dict(),
-        "physics_nuisance": ({k: float(v) for k, v in sel.final.nuisance.items()} if sel.final.nuisance else None),
-        "timing_s": timing,
+    return {"dominant": max(share, key=share.get), "variance_share": share,
+            "note": "share of the mean reading variance over the moves (friction through the contact "
+                    "sensitivity)"}
+
+
+def _selection_section(sel, weights) -> dict:
+    """The report's ``selection``: why the forward selection stopped and its steps."""
+    return {
+        "stop_reason": sel.stop_reason,
+        "weighted": weights is not None,
+        "steps": [
+            {"best": s.best, "p_value": s.p_value, "accepted": s.accepted, "equivalent": list(s.equivalent),
+             "structure_p_value": s.structure.p_value, "current_bic": s.current.bic,
+             "best_bic": (s.fits[s.best].bic if s.best else None)}
+            for s in sel.steps
+        ],
     }
-    if g is not None:
-        report["gain"] = g.to_dict()
-    if control is not None:
-        report["control"] = control
-    return Diagnosis(report, ext_cfg, data, afm_resid, model_resid, resid, sel, noise, g,
-                     {"all_data": all_data, "outliers": out_mask, "named": named, "smooth": smooth})
+
+
+def _outliers_section(op: _OutlierPasses, all_data, afm, stage) -> dict:
+    """The report's ``outliers``: every outlier row with its suspect cell, and the test."""
+    out_mask, rows = op.out_mask, op.rows
+    return {
+        "rows": [{**ids, **cell, "z": float(rows.z[ids["index"]])} for ids, cell in
+                 zip(all_data.row_ids(np.flatnonzero(out_mask)),
+                     suspect_cells(all_data, afm.K, out_mask, stage.actuator_names, stage.tool.name))],
+        "count": int(out_mask.sum()),
+        "test": ("residual of the named model (less the flexible term where structure is left), "
+                 "standardised by the noise model and the robust scale of the fitted rows; "
+                 "Bonferroni over rows"),
+        "critical_z": rows.critical,
+        "passes": len(op.passes),
+        "converged": op.converged,
+        "note": "left out of every fit and of the RMSEs and tests below; index is 0-based, line is the "
+                "CSV line (header = line 1)",
+    }
+
+
+def _nuisance_section(sel) -> dict:
+    """The report's ``nuisance``: the gauge zero and the stage-physics nuisances with their errors."""
+    return {
+        "gauge_zero_um": float(sel.final.zero_um),
+        "stderr": {"gauge_zero_um": float(sel.final.zero_se_um),
+                   **{k: (float(v) if np.isfinite(v) else None) for k, v in sel.final.nuisance_se.items()}},
+        **{k: float(v) for k, v in sel.final.nuisance.items()},
+        "note": ("gauge_zero_um: constant offset of the readings (the gauge zero is one noisy reading at the "
+                 "zero state); fitted in every mean model, not a stage cause, not written to extended.yaml. "
+                 "Stage-physics nuisances fitted with a cause (preload_compression_um with contact_loss) are "
+                 "written to extended.yaml's stage.physics"),
+    }

@@ -7,6 +7,8 @@ Modules:
 - :mod:`~microctl.experiments.design` — training move designs (IV-A);
 - :mod:`~microctl.control.oracle` — the controller that optimises against the simulator's
   true mean and variance (the limit any learned model can reach);
+- :mod:`~microctl.experiments.controllers` — the registry of the controllers an experiment can
+  compare (name, label, plot style, factory): adding a controller is one registration;
 - :mod:`~microctl.experiments.runner` — executes the phases, logging every move row by row;
 - :mod:`~microctl.experiments.report` — statistics (Table II, the t-tests), results.json, report.md;
 - :mod:`~microctl.experiments.figures` — Fig. 5 and Fig. 6 analogues (PNG, matplotlib optional).

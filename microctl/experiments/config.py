@@ -14,10 +14,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 from functools import cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
+import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
 from microctl.models.training import ResidualModelSettings
 from microctl.stage.config import StageConfig, load_stage_config, load_yaml
@@ -29,16 +30,9 @@ from microctl.util.fields import (
     validate_settings,
 )
 
-#: Controllers an experiment can compare: the paper's AFM and EAFM (eq. 4), the oracle (eq. 4 on
-#: the simulator's truth), and sequence control over the whole target list with the EAFM
-#: (:mod:`microctl.control.sequence`) and on the truth (:class:`~microctl.control.oracle.OracleSequenceController`).
-CONTROLLERS = ("afm", "eafm", "oracle", "eafm_sequence", "oracle_sequence")
-
-#: Controllers of an experiment file that does not list them.
-DEFAULT_CONTROLLERS = ("afm", "eafm", "oracle")
-
-#: Controllers that need the simulator's truth.
-TRUTH_CONTROLLERS = ("oracle", "oracle_sequence")
+#: Controllers of an experiment file that does not list them (the registry's defaults:
+#: :mod:`microctl.experiments.controllers` lists every controller an experiment can compare).
+DEFAULT_CONTROLLERS = registry.default_names()
 
 #: How refinement rounds choose their moves (see :class:`Training`).
 REFINE_STRATEGIES = ("uncertainty", "on_policy")
@@ -204,8 +198,8 @@ class ExperimentConfig:
         Serve the stage in-process (:class:`~microctl.backends.emulator.Emulator`) and drive it through
         the serial backend (needs ``backend.serial`` in the stage config).
     controllers : tuple of str
-        Controllers compared, a subset of :data:`CONTROLLERS` (``afm`` and ``eafm`` required;
-        default :data:`DEFAULT_CONTROLLERS`).
+        Controllers compared, registered in :mod:`microctl.experiments.controllers` (``afm`` and
+        ``eafm`` required; default :data:`DEFAULT_CONTROLLERS`).
     seeds : Seeds
     training : Training
     controller : ControllerSettings
@@ -307,38 +301,9 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
          "incremental", "figures"],
         required=["stage"], none_ok=True,
     )
-    stage_raw = top["stage"]
-    if not isinstance(stage_raw, str) or not stage_raw.strip():
-        raise ck.fail("stage", f"expected the path of a stage config, got {stage_raw!r}")
-    stage_path = Path(stage_raw)
-    if not stage_path.is_absolute():
-        stage_path = (base_dir / stage_path).resolve()
-    if stage_path.is_dir():
-        raise ck.fail("stage", f"'{stage_raw}' is a directory ({stage_path}); give the path of a stage config file")
-    if not stage_path.is_file():
-        raise ck.fail("stage", f"stage config '{stage_raw}' not found (looked for {stage_path})")
-    stage_config = load_stage_config(stage_path)
+    stage_path, stage_config = _read_stage(ck, top["stage"], base_dir)
     emulate = ck.boolean(top.get("emulate", False), "emulate")
-
-    ctrl_raw = top.get("controllers", list(DEFAULT_CONTROLLERS))
-    if not isinstance(ctrl_raw, list) or not ctrl_raw:
-        raise ck.fail("controllers", f"expected a list of controllers from {', '.join(CONTROLLERS)}, got {ctrl_raw!r}")
-    controllers = tuple(ck.choice(c, f"controllers[{i}]", CONTROLLERS) for i, c in enumerate(ctrl_raw))
-    if len(set(controllers)) != len(controllers):
-        raise ck.fail("controllers", f"lists a controller twice: {list(controllers)}")
-    for need in ("afm", "eafm"):
-        if need not in controllers:
-            raise ck.fail("controllers", f"must include '{need}' (the paper compares AFM and EAFM)")
-    backend = stage_config.backend
-    if emulate and backend.serial is None:
-        raise ck.fail("emulate", f"needs a stage config with backend.serial (the devices to emulate); "
-                                 f"{stage_path} has none")
-    simulated = backend.kind == "simulated" or emulate
-    for name in TRUTH_CONTROLLERS:
-        if name in controllers and not simulated:
-            raise ck.fail("controllers", f"'{name}' needs the simulator's true mean and variance: use a simulated "
-                                         "stage (backend.kind: simulated) or emulate: true")
-
+    controllers = _read_controllers(ck, top, stage_config, stage_path, emulate)
     seeds = _section(ck, top, "seeds", Seeds, {k: 0 for k in Seeds.__dataclass_fields__})
 
     @cache
@@ -356,7 +321,60 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     controller = read_settings(ck, top.get("controller"), "controller", ControllerSettings)
 
     oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1})
+    absolute, incremental = _read_movements(ck, top, reachable)
 
+    return ExperimentConfig(
+        source=source, stage_path=stage_path, stage_config=stage_config, emulate=emulate,
+        controllers=controllers, seeds=seeds, training=training, controller=controller, oracle=oracle,
+        absolute=absolute, incremental=incremental,
+        figures=ck.boolean(top.get("figures", True), "figures"),
+    )
+
+
+def _read_stage(ck: FieldReader, stage_raw: Any, base_dir: Path) -> tuple[Path, StageConfig]:
+    """The ``stage`` field: the stage config's path (resolved against ``base_dir``) and the loaded config."""
+    if not isinstance(stage_raw, str) or not stage_raw.strip():
+        raise ck.fail("stage", f"expected the path of a stage config, got {stage_raw!r}")
+    stage_path = Path(stage_raw)
+    if not stage_path.is_absolute():
+        stage_path = (base_dir / stage_path).resolve()
+    if stage_path.is_dir():
+        raise ck.fail("stage", f"'{stage_raw}' is a directory ({stage_path}); give the path of a stage config file")
+    if not stage_path.is_file():
+        raise ck.fail("stage", f"stage config '{stage_raw}' not found (looked for {stage_path})")
+    return stage_path, load_stage_config(stage_path)
+
+
+def _read_controllers(ck: FieldReader, top: Mapping, stage_config: StageConfig, stage_path: Path,
+                      emulate: bool) -> tuple[str, ...]:
+    """The ``controllers`` list, checked against the registry (:mod:`microctl.experiments.controllers`):
+    known names, none twice, the required ones present, the truth-needing ones only on a simulated
+    (or emulated) stage; also checks ``emulate`` has serial devices to emulate."""
+    known = registry.names()
+    ctrl_raw = top.get("controllers", list(registry.default_names()))
+    if not isinstance(ctrl_raw, list) or not ctrl_raw:
+        raise ck.fail("controllers", f"expected a list of controllers from {', '.join(known)}, got {ctrl_raw!r}")
+    controllers = tuple(ck.choice(c, f"controllers[{i}]", known) for i, c in enumerate(ctrl_raw))
+    if len(set(controllers)) != len(controllers):
+        raise ck.fail("controllers", f"lists a controller twice: {list(controllers)}")
+    for need in registry.required_names():
+        if need not in controllers:
+            raise ck.fail("controllers", f"must include '{need}' (the paper compares AFM and EAFM)")
+    backend = stage_config.backend
+    if emulate and backend.serial is None:
+        raise ck.fail("emulate", f"needs a stage config with backend.serial (the devices to emulate); "
+                                 f"{stage_path} has none")
+    simulated = backend.kind == "simulated" or emulate
+    for name in known:
+        if name in controllers and registry.entry(name).needs_truth and not simulated:
+            raise ck.fail("controllers", f"'{name}' needs the simulator's true mean and variance: use a simulated "
+                                         "stage (backend.kind: simulated) or emulate: true")
+    return controllers
+
+
+def _read_movements(ck: FieldReader, top: Mapping, reachable: Callable[[], tuple[float, float]]
+                    ) -> tuple[Absolute, Incremental]:
+    """The ``absolute`` and ``incremental`` sections (at least one enabled; every target reachable)."""
     ab = ck.mapping(top.get("absolute"), "absolute", ["enabled", "points", "trials"], none_ok=True)
     da = Absolute()
     absolute = Absolute(
@@ -377,13 +395,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     if incremental.enabled:
         for i, t in enumerate(incremental.targets_um):  # every target reachable, checked before any move
             _check_in_range(ck, reachable(), f"incremental.targets_um[{i}]", (t,))
-
-    return ExperimentConfig(
-        source=source, stage_path=stage_path, stage_config=stage_config, emulate=emulate,
-        controllers=controllers, seeds=seeds, training=training, controller=controller, oracle=oracle,
-        absolute=absolute, incremental=incremental,
-        figures=ck.boolean(top.get("figures", True), "figures"),
-    )
+    return absolute, incremental
 
 
 def _check_in_range(ck: FieldReader, reachable: tuple[float, float], path: str, values: tuple[float, ...]) -> None:

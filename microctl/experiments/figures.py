@@ -2,7 +2,7 @@
 
 Both figures are drawn from ``results.json`` (the statistics the report prints), so every
 number a figure shows is the one the report states. Controllers are named as in the report
-(:data:`~microctl.experiments.report.CONTROLLER_LABELS`: AFM, EAFM, oracle) with one colour
+(:mod:`~microctl.experiments.controllers`: AFM, EAFM, oracle) with one colour
 and one marker each.
 
 - ``fig5_absolute.png`` (paper Fig. 5): (a) per absolute point, the feedback t' of each
@@ -25,30 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
-from microctl.experiments.report import CONTROLLER_LABELS
-
-#: Colour and marker of each controller (the same in every figure).
-STYLE = {
-    "afm": {"color": "tab:blue", "marker": "o", "fill": True},
-    "eafm": {"color": "tab:red", "marker": "D", "fill": True},
-    "oracle": {"color": "tab:green", "marker": "s", "fill": False},
-    "eafm_sequence": {"color": "tab:purple", "marker": "v", "fill": True},
-    "oracle_sequence": {"color": "tab:olive", "marker": "^", "fill": False},
-}
-#: Horizontal offsets (in trials) of each controller's markers in Fig. 6.
-OFFSETS = {"afm": -0.3, "eafm": -0.1, "oracle": 0.1, "eafm_sequence": 0.3, "oracle_sequence": 0.4}
+import microctl.experiments.controllers as registry
 
 FIG5, FIG6 = "fig5_absolute.png", "fig6_incremental.png"
 
 
 def _label(name: str) -> str:
-    return CONTROLLER_LABELS.get(name, name)
+    return registry.label(name)
 
 
 def _marker_kw(name: str, size: float = 5.0) -> dict:
-    st = STYLE.get(name, {"color": "0.3", "marker": "^", "fill": True})
-    return {"marker": st["marker"], "ls": "none", "ms": size, "color": st["color"], "mec": st["color"],
-            "mfc": st["color"] if st["fill"] else "white", "mew": 1.2}
+    st = registry.style(name)  # the same colour and marker in every figure
+    return {"marker": st.marker, "ls": "none", "ms": size, "color": st.color, "mec": st.color,
+            "mfc": st.color if st.fill else "white", "mew": 1.2}
 
 
 def figure_fig5(absolute: dict, title: str = ""):
@@ -77,7 +66,7 @@ def figure_fig5(absolute: dict, title: str = ""):
     # (a) per point: EAFM mean ± 2σ (the trials start from the same zero state: their
     # predictions differ only by the zero state's reading, so the trial mean is drawn)
     m, s = np.nanmean(mean, axis=0)[order], np.nanmean(std, axis=0)[order]
-    a.errorbar(x, m, yerr=2 * s, fmt="none", ecolor=STYLE["eafm"]["color"], elinewidth=5, alpha=0.3,
+    a.errorbar(x, m, yerr=2 * s, fmt="none", ecolor=registry.style("eafm").color, elinewidth=5, alpha=0.3,
                label="EAFM mean ± 2σ")
     a.plot(x, m, **_marker_kw("eafm", 4), label="EAFM mean")
     a.plot(x, afm[order], **{**_marker_kw("afm", 7), "marker": "x"}, label="AFM prediction")
@@ -91,8 +80,8 @@ def figure_fig5(absolute: dict, title: str = ""):
     # (b) PE per point, linear axis
     pe_a = np.asarray(absolute["pe_um"]["afm"], dtype=float)[order]
     pe_e = np.asarray(absolute["pe_um"]["eafm"], dtype=float)[order]
-    b.bar(x - 0.2, pe_a, width=0.4, color=STYLE["afm"]["color"], label="AFM")
-    b.bar(x + 0.2, pe_e, width=0.4, color=STYLE["eafm"]["color"], label="EAFM")
+    b.bar(x - 0.2, pe_a, width=0.4, color=registry.style("afm").color, label="AFM")
+    b.bar(x + 0.2, pe_e, width=0.4, color=registry.style("eafm").color, label="EAFM")
     b.set_ylabel("prediction error PE (µm)")
     b.set_title(f"(b) PE = |t' − prediction|, mean of {T} trial{'s' if T != 1 else ''} per point")
     b.legend(fontsize=8, loc="upper left")
@@ -142,10 +131,10 @@ def figure_fig6(incremental: dict, title: str = ""):
             ax = axes[r, j]
             for name in names:
                 e = np.asarray(ctrls[name]["sse_um"], dtype=float)[:, j]
-                off = OFFSETS.get(name, 0.0)
+                off = registry.style(name).offset
                 ax.plot(trials + off, e, **_marker_kw(name, 5), label=_label(name))
                 ax.plot([0.6 + off, T + 0.4 + off], [ctrls[name]["msse_um"][j]] * 2,
-                        color=STYLE.get(name, {}).get("color", "0.3"), lw=1, alpha=0.7)
+                        color=registry.style(name).color, lw=1, alpha=0.7)
             ax.axhline(0, color="0.5", lw=0.8)
             ax.set_xticks(trials if T <= 10 else np.linspace(1, T, 5).round().astype(int))
             ax.set_xlim(0.4, T + 0.6)

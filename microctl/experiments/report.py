@@ -23,9 +23,11 @@ import numpy as np
 import yaml
 from scipy.special import ndtr
 
-from microctl.util import stats
+import microctl.experiments.controllers as registry
+from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
+from microctl.util import stats
 from microctl.util.io import to_jsonable, write_json
 
 #: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
@@ -35,11 +37,6 @@ PAPER_TABLE_II = {
     "vsse_um2": {"afm": [0.3, 3.1, 4.5, 8.0], "eafm": [0.14, 0.15, 0.5, 3.5]},
     "p_value": {"msse": 0.01, "vsse": 0.07, "absolute_pe": 1e-6},
 }
-
-
-#: How controllers are named in report.md, the figures and the generated docs.
-CONTROLLER_LABELS = {"afm": "AFM", "eafm": "EAFM", "oracle": "oracle", "eafm_sequence": "EAFM sequence",
-                     "oracle_sequence": "oracle sequence"}
 
 
 def write_config(path: Path, cfg: ExperimentConfig) -> None:
@@ -251,12 +248,12 @@ def _sequence_lines(c: dict) -> list[str]:
     """Greedy against sequence control (the paper's future work): the cumulative VSSE over the
     targets, measured and, on a simulated stage, expected under the simulator's true scatter
     (the VSSE of 10 trials is itself uncertain by about ±45 % (1σ), the expected one is not)."""
-    pairs = [(g, s) for g, s in (("eafm", "eafm_sequence"), ("oracle", "oracle_sequence")) if g in c and s in c]
+    pairs = [(g, s) for g, s in registry.sequence_pairs() if g in c and s in c]
     if not pairs:
         return []
     parts = []
     for g, s in pairs:
-        line = (f"{CONTROLLER_LABELS[g]} {_f(sum(c[g]['vsse_um2']), 4)} µm², {CONTROLLER_LABELS[s]} "
+        line = (f"{registry.label(g)} {_f(sum(c[g]['vsse_um2']), 4)} µm², {registry.label(s)} "
                 f"{_f(sum(c[s]['vsse_um2']), 4)} µm² measured")
         if "expected_vsse_um2" in c[g] and "expected_vsse_um2" in c[s]:
             eg, es = sum(c[g]["expected_vsse_um2"]), sum(c[s]["expected_vsse_um2"])
@@ -330,12 +327,12 @@ def table_ii_lines(inc: dict) -> list[str]:
     for metric, key, unit in (("MSSE", "msse_um", "µm"), ("SE of MSSE", "msse_stderr_um", "µm"),
                               ("VSSE", "vsse_um2", "µm²")):
         for name, c in inc["controllers"].items():
-            L.append(f"| {metric} | {CONTROLLER_LABELS.get(name, name)} | "
+            L.append(f"| {metric} | {registry.label(name)} | "
                      + " | ".join(_f(v) for v in c[key]) + f" | {unit} |")
     if [float(t) for t in T] == PAPER_TABLE_II["targets_um"]:
         for metric, key, unit in (("MSSE", "msse_um", "µm"), ("VSSE", "vsse_um2", "µm²")):
             for name in ("afm", "eafm"):
-                L.append(f"| {metric} (paper) | {CONTROLLER_LABELS[name]} | "
+                L.append(f"| {metric} (paper) | {registry.label(name)} | "
                          + " | ".join(_f(v, 2) for v in PAPER_TABLE_II[key][name]) + f" | {unit} |")
     return L
 
@@ -416,7 +413,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
              f"({tr.moves} designed + {tr.refine_rounds} refinement rounds, strategy `{tr.refine_strategy}`), "
              f"noise model `{tr.noise_model}`, linear trend {'on' if tr.linear_trend else 'off'}, "
              f"{tr.restarts} VHGPR restarts; controller r_e = `{cfg.controller.r_e}`"
-             + (f" (kappa {cfg.controller.kappa:g})" if cfg.controller.r_e == "noise_quantile" else "") + "."
+             + (f" (kappa {cfg.controller.kappa:g})" if R_E_SUMMARIES[cfg.controller.r_e].uses_kappa else "") + "."
              + (f" Seeds offset by {cfg.seed_offset} from the file's." if cfg.seed_offset else ""))
     L.append("")
     L += bars_section(results)

@@ -28,10 +28,9 @@ import numpy as np
 
 from microctl.backends import make_backend
 from microctl.backends.base import StageBackend
-from microctl.control.controller import AFMController, ControlResult, OptimalController
-from microctl.control.oracle import OracleController, OracleSequenceController
-from microctl.control.sequence import SequenceController
+from microctl.control.controller import ControlResult, OptimalController
 from microctl.errors import BackendError, SolveError
+import microctl.experiments.controllers as registry
 from microctl.experiments.config import ExperimentConfig
 from microctl.measurement.design import space_filling_moves, training_moves
 from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
@@ -290,25 +289,8 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
 
 
 def _controllers(run: _Run, eafm: EAFM) -> dict:
-    cfg = run.cfg
-    o = cfg.oracle
-    out: dict[str, Any] = {}
-    for name in cfg.controllers:
-        if name == "afm":
-            out[name] = AFMController(run.afm, cfg.controller, reporter=eafm)
-        elif name == "eafm":
-            # with the AFM baseline: each result says whether its pose is credibly quieter
-            out[name] = OptimalController(eafm, cfg.controller, baseline=AFMController(run.afm, cfg.controller))
-        elif name == "eafm_sequence":
-            out[name] = SequenceController(eafm, cfg.controller)
-        elif name == "oracle_sequence":
-            out[name] = OracleSequenceController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
-                                                 newton_steps=o.newton_steps,
-                                                 sequence_objective=cfg.controller.sequence_objective)
-        else:
-            out[name] = OracleController(run.afm, None, grid=o.grid, line_points=o.line_points, zooms=o.zooms,
-                                         newton_steps=o.newton_steps)
-    return out
+    """The configured controllers, built by their registry entries (:mod:`microctl.experiments.controllers`)."""
+    return {name: registry.entry(name).build(run, eafm) for name in run.cfg.controllers}
 
 
 def _incremental(run: _Run, eafm: EAFM) -> dict:
@@ -322,6 +304,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
     res: dict[str, Any] = {}
     with Progress(len(ctrls) * T * J, "incremental movement", quiet=run.quiet) as pr:
         for name, ctrl in ctrls.items():
+            spec = registry.entry(name)
             r = {key: np.full((T, J), np.nan) for key in
                  ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s",
                   "prob_quieter_than_afm", "credibly_quieter_than_afm")}
@@ -332,15 +315,16 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                 # the same stage seed for every controller: common random numbers
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
                     truth = run.truth(b)
-                    if isinstance(ctrl, (OracleController, OracleSequenceController)):
+                    if spec.needs_truth:
                         ctrl.bind(truth)
                     rec.move(b, np.zeros(afm.n_p), trial=k, target_um=0.0, controller=name)  # the zero state
                     prev_u = None
                     plan: Any = None
                     for j, target in enumerate(targets):
                         s = b.state
-                        if isinstance(ctrl, (SequenceController, OracleSequenceController)):
-                            sol, plan = _sequence_step(ctrl, targets[j:], s, plan, run, r, fallback=ctrls["afm"])
+                        if spec.sequence:
+                            sol, plan = _sequence_step(ctrl, spec.replan, targets[j:], s, plan, run, r,
+                                                       fallback=ctrls["afm"])
                         else:
                             sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"])
                         if truth is not None:
@@ -375,22 +359,22 @@ def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallb
     return fallback.solve(float(target), s)
 
 
-def _sequence_step(ctrl, rest: list[float], s: np.ndarray, plan: Any, run: _Run, r: dict, fallback
-                   ) -> tuple[ControlResult, Any]:
+def _sequence_step(ctrl, replan: bool, rest: list[float], s: np.ndarray, plan: Any, run: _Run, r: dict,
+                   fallback) -> tuple[ControlResult, Any]:
     """The next move of a sequence controller over the remaining targets ``rest``, from the state s.
 
-    ``eafm_sequence`` plans the whole list at the first move and re-plans the remaining targets
+    A re-planning controller (``replan``, e.g. ``eafm_sequence``) plans the whole list at the first move and re-plans the remaining targets
     after every executed move from the measured state, warm-started with the previous plan
     without its executed move (receding horizon): the EAFM's mean and noise depend on the
     measured t_prev (x = [s; u], eq. 3), so each executed command is then on the EAFM-mean
     surface from the state it is executed from, as the move-by-move controllers' are.
-    ``oracle_sequence`` plans once and executes its plan: the truth depends on the previous
+    One that does not (e.g. ``oracle_sequence``) plans once and executes its plan: the truth depends on the previous
     state only through q, which the commands fix, so a re-plan would return the same moves.
     Returns the move and what the next call needs (the plan). A failed plan is retried cold,
     then the AFM command is used for this move (counted as a fallback) and the next move plans
     afresh.
     """
-    if isinstance(ctrl, OracleSequenceController):
+    if not replan:
         if not plan:
             try:
                 plan = ctrl.plan(rest, s).steps

@@ -307,36 +307,12 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1, *, plausibility:
         )
     if len(table.rows) < min_rows:
         raise DataError(f"{p}: {len(table.rows)} data rows, at least {min_rows} needed")
-    seq_f = table.numeric("seq")
-    for k, v in enumerate(seq_f):
-        if v > MAX_SEQ:
-            raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
-                            f"is too large (at most {MAX_SEQ})")
-        if v != np.floor(v) or v < 0:
-            raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
-                            "is not a non-negative integer")
-        if k > 0 and v == seq_f[k - 1]:
-            raise DataError(f"{p}: row {k + 2}, column 'seq': duplicate seq {int(v)} (also on row {k + 1})")
-        if k > 0 and v < seq_f[k - 1]:
-            raise DataError(
-                f"{p}: row {k + 2}, column 'seq': seq {int(v)} is not increasing (row {k + 1} has {int(seq_f[k - 1])})"
-            )
+    seq_f = _read_seq(table)
     u = table.numeric_columns(pose_columns(stage))
     q = table.numeric_columns(list(stage.actuator_names))
     t = table.numeric(stage.tool.name)
     prev = prev_columns(stage)
-    present = [c for c in prev if table.has(c)]
-    if present and len(present) != len(prev):
-        absent = [c for c in prev if c not in present]
-        raise DataError(
-            f"{p}: the previous-state columns must be given all or none; missing "
-            f"{', '.join(repr(c) for c in absent)}"
-        )
-    if present:
-        s_prev = table.numeric_columns(prev)
-    else:
-        s = np.column_stack([t, q])
-        s_prev = np.vstack([np.zeros((1, s.shape[1])), s[:-1]]) if len(t) else np.zeros((0, s.shape[1]))
+    present, s_prev = _read_prev(table, prev, t, q)
     time_s = table.numeric("time_s") if table.has("time_s") else None
     used = set(required) | set(prev) | {"time_s"}
     extra = {
@@ -356,6 +332,46 @@ def read_log(path: str | Path, stage: Stage, min_rows: int = 1, *, plausibility:
         path=p, seq=seq, u=u, q=q, t=t, s_prev=s_prev, time_s=time_s, extra=extra, prev_from_columns=bool(present),
         implausible=implausible,
     )
+
+
+
+def _read_seq(table) -> np.ndarray:
+    """The ``seq`` column, shape (n,): non-negative integers up to :data:`MAX_SEQ`, increasing."""
+    p = table.path
+    seq_f = table.numeric("seq")
+    for k, v in enumerate(seq_f):
+        if v > MAX_SEQ:
+            raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
+                            f"is too large (at most {MAX_SEQ})")
+        if v != np.floor(v) or v < 0:
+            raise DataError(f"{p}: row {k + 2}, column 'seq': {table.rows[k][table.header.index('seq')].strip()!r} "
+                            "is not a non-negative integer")
+        if k > 0 and v == seq_f[k - 1]:
+            raise DataError(f"{p}: row {k + 2}, column 'seq': duplicate seq {int(v)} (also on row {k + 1})")
+        if k > 0 and v < seq_f[k - 1]:
+            raise DataError(
+                f"{p}: row {k + 2}, column 'seq': seq {int(v)} is not increasing (row {k + 1} has {int(seq_f[k - 1])})"
+            )
+    return seq_f
+
+
+def _read_prev(table, prev: list, t: np.ndarray, q: np.ndarray) -> tuple[bool, np.ndarray]:
+    """The previous state s_prev, shape (n, 1 + n_q): from the ``*_prev`` columns (all or none),
+    else the row before (zeros before the first). Returns whether the columns were present too."""
+    p = table.path
+    present = [c for c in prev if table.has(c)]
+    if present and len(present) != len(prev):
+        absent = [c for c in prev if c not in present]
+        raise DataError(
+            f"{p}: the previous-state columns must be given all or none; missing "
+            f"{', '.join(repr(c) for c in absent)}"
+        )
+    if present:
+        s_prev = table.numeric_columns(prev)
+    else:
+        s = np.column_stack([t, q])
+        s_prev = np.vstack([np.zeros((1, s.shape[1])), s[:-1]]) if len(t) else np.zeros((0, s.shape[1]))
+    return bool(present), s_prev
 
 
 
@@ -408,60 +424,81 @@ def implausible_rows(
         From ``*_prev`` columns (None: not in the file).
     time_s : ndarray, shape (n,), optional
     """
-    out: list[ImplausibleRow] = []
     if len(t) == 0:
-        return out
+        return []
+    out = _command_rows(stage, u, q)
+    if s_prev is not None:
+        out += _prev_rows(stage, s_prev[:, 1:])
+    tname, t_max = stage.tool.name, plausible_t_bound_um(stage)
+    out += _reading_rows(t_max, tname, t)
+    if s_prev is not None:
+        out += _reading_rows(t_max, f"{tname}_prev", s_prev[:, 0])
+    if time_s is not None:
+        out += _time_rows(time_s)
+    return sorted(out, key=lambda r: r.row)  # stable: within a row, in the order of the rules
+
+
+def _each(bad: np.ndarray):
+    """(row, column index) of the first bad column of every bad row of ``bad`` (n, m)."""
+    for k in np.flatnonzero(bad.any(axis=1)):
+        yield int(k), int(np.argmax(bad[k]))
+
+
+def _command_rows(stage: Stage, u: np.ndarray, q: np.ndarray) -> list[ImplausibleRow]:
+    """Rows whose u is outside the workspace, whose q is outside its range or differs from K u (eq. 12)."""
     afm = AnalyticForwardModel(stage)
     names = stage.actuator_names
     lo, hi = stage.range_lo, stage.range_hi
     tol = LOG_Q_TOLERANCE_UM
     ucols = ",".join(pose_columns(stage))
-
-    def each(bad: np.ndarray):
-        """(row, column index) of the first bad column of every bad row."""
-        for k in np.flatnonzero(bad.any(axis=1)):
-            yield int(k), int(np.argmax(bad[k]))
-
+    out: list[ImplausibleRow] = []
     Ku = u @ afm.K.T
-    for k, i in each((Ku < lo - tol) | (Ku > hi + tol)):
+    for k, i in _each((Ku < lo - tol) | (Ku > hi + tol)):
         out.append(ImplausibleRow(k, ucols, f"u = [{', '.join(f'{v:.6g}' for v in u[k])}] is outside the workspace: "
                                             f"K u puts actuator {names[i]} at {Ku[k, i]:.4f} µm, outside its range "
                                             f"[{lo[i]:g}, {hi[i]:g}] µm"))
-    for k, i in each((q < lo - tol) | (q > hi + tol)):
+    for k, i in _each((q < lo - tol) | (q > hi + tol)):
         out.append(ImplausibleRow(k, names[i], f"{q[k, i]:.6g} µm is outside the actuator's range [{lo[i]:g}, "
                                                f"{hi[i]:g}] µm (range_um in the stage config; tolerance {tol:g} µm)"))
-    for k, i in each(np.abs(q - Ku) > tol):
+    for k, i in _each(np.abs(q - Ku) > tol):
         out.append(ImplausibleRow(k, names[i], f"{q[k, i]:.6g} µm differs from K u = {Ku[k, i]:.6g} µm of this row's "
                                                f"control signal by {abs(q[k, i] - Ku[k, i]):.3g} µm (tolerance {tol:g} "
                                                "µm); the log does not belong to this stage geometry, or its q or u "
                                                "columns are wrong"))
-    t_max = plausible_t_bound_um(stage)
-    tname = stage.tool.name
-    checks = [(tname, t)]
-    if s_prev is not None:
-        checks.append((f"{tname}_prev", s_prev[:, 0]))
-        q_prev = s_prev[:, 1:]
-        lim_lo = np.array([a.limit_um[0] for a in stage.actuators])
-        lim_hi = np.array([a.limit_um[1] for a in stage.actuators])
-        for k, i in each((q_prev < lim_lo - tol) | (q_prev > lim_hi + tol)):
-            out.append(ImplausibleRow(k, f"{names[i]}_prev", f"{q_prev[k, i]:.6g} µm is outside the actuator's "
-                                                             f"hardware limit [{lim_lo[i]:g}, {lim_hi[i]:g}] µm "
-                                                             "(limit_um in the stage config)"))
-    for name, col in checks:
-        for k, _ in each((np.abs(col) > t_max)[:, None]):
-            out.append(ImplausibleRow(k, name, f"{col[k]:.6g} µm is implausible: the stage reaches at most |t| = "
-                                               f"{t_max / T_PLAUSIBLE_FACTOR:.6g} µm and readings beyond "
-                                               f"{T_PLAUSIBLE_FACTOR:g} times that are refused (wrong unit, an untared "
-                                               "gauge or a corrupt file?)"))
-    if time_s is not None:
-        for k, _ in each(((time_s < 0) | (time_s > MAX_TIME_S))[:, None]):
-            out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is outside [0, {MAX_TIME_S:g}] (seconds since "
-                                                   "the start of the run)"))
-        back = np.concatenate([[False], np.diff(time_s) < 0])
-        for k, _ in each(back[:, None]):
-            out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on row "
-                                                   f"{k + 1}; time_s must not decrease in seq order"))
-    return sorted(out, key=lambda r: r.row)
+    return out
+
+
+def _prev_rows(stage: Stage, q_prev: np.ndarray) -> list[ImplausibleRow]:
+    """Rows whose ``*_prev`` q (n, n_q) is outside its hardware limit."""
+    names = stage.actuator_names
+    tol = LOG_Q_TOLERANCE_UM
+    lim_lo = np.array([a.limit_um[0] for a in stage.actuators])
+    lim_hi = np.array([a.limit_um[1] for a in stage.actuators])
+    return [ImplausibleRow(k, f"{names[i]}_prev", f"{q_prev[k, i]:.6g} µm is outside the actuator's "
+                                                  f"hardware limit [{lim_lo[i]:g}, {lim_hi[i]:g}] µm "
+                                                  "(limit_um in the stage config)")
+            for k, i in _each((q_prev < lim_lo - tol) | (q_prev > lim_hi + tol))]
+
+
+def _reading_rows(t_max: float, name: str, col: np.ndarray) -> list[ImplausibleRow]:
+    """Rows whose reading ``col`` (n,) is beyond ``t_max`` (:func:`plausible_t_bound_um`)."""
+    return [ImplausibleRow(k, name, f"{col[k]:.6g} µm is implausible: the stage reaches at most |t| = "
+                                    f"{t_max / T_PLAUSIBLE_FACTOR:.6g} µm and readings beyond "
+                                    f"{T_PLAUSIBLE_FACTOR:g} times that are refused (wrong unit, an untared "
+                                    "gauge or a corrupt file?)")
+            for k, _ in _each((np.abs(col) > t_max)[:, None])]
+
+
+def _time_rows(time_s: np.ndarray) -> list[ImplausibleRow]:
+    """Rows whose ``time_s`` is outside [0, :data:`MAX_TIME_S`] or earlier than the row before."""
+    out = [ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is outside [0, {MAX_TIME_S:g}] (seconds since "
+                                       "the start of the run)")
+           for k, _ in _each(((time_s < 0) | (time_s > MAX_TIME_S))[:, None])]
+    back = np.concatenate([[False], np.diff(time_s) < 0])
+    for k, _ in _each(back[:, None]):
+        out.append(ImplausibleRow(k, "time_s", f"{time_s[k]:.6g} s is earlier than {time_s[k - 1]:.6g} s on row "
+                                               f"{k + 1}; time_s must not decrease in seq order"))
+    return out
 
 
 def _implausible_error(path: Path | str, r: ImplausibleRow) -> DataError:

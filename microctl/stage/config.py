@@ -27,6 +27,15 @@ from microctl.errors import ConfigError
 from microctl.stage.causes import REGISTRY, Effects
 from microctl.stage.geometry import TWIST_COMPONENTS, Actuator, Physics, Stage, Tool
 from microctl.stage.kinematics import contact_map, inverse_kinematics_matrix
+from microctl.stage.serial_config import (  # noqa: F401  (the serial section's settings, re-exported)
+    MAX_BAUDRATE,
+    MAX_WAIT_S,
+    AxisMap,
+    Gauge,
+    SerialBackend,
+    SerialController,
+    parse_serial,
+)
 from microctl.util.fields import FieldReader
 
 #: Largest condition number accepted for the contact map H R^T J (eq. 10) and the
@@ -40,14 +49,6 @@ MIN_TRANSMISSION = 0.1
 #: Largest magnitude of an actuator's ``range_um`` or ``limit_um``, µm. A piezo stroke is tens
 #: to hundreds of µm; a bound beyond 10 mm is a unit mistake (nm typed as µm), not a stage.
 MAX_STROKE_UM = 1e4
-
-#: Longest port timeout, on-target timeout or poll interval accepted, s (pyserial cannot wait
-#: much longer than this on every platform, and a device slower than an hour is broken).
-MAX_WAIT_S = 3600.0
-
-#: Fastest baud rate accepted (real serial adapters stop well below it).
-MAX_BAUDRATE = 100_000_000
-
 
 # --------------------------------------------------------------------------------------
 # backend dataclasses (the stage geometry: microctl.stage.geometry)
@@ -79,53 +80,9 @@ class SimulatedBackend:
     effects: Effects = field(default_factory=Effects)
 
 
-@dataclass(frozen=True)
-class SerialController:
-    """One PZT servo driver (PI GCS 2 subset)."""
-
-    name: str
-    url: str
-    baudrate: int = 115200
-    timeout_s: float = 1.0
-
-
-@dataclass(frozen=True)
-class AxisMap:
-    """Where an actuator is driven: (controller name, axis id)."""
-
-    controller: str
-    axis: str
-
-
-@dataclass(frozen=True)
-class Gauge:
-    """The displacement gauge's line protocol."""
-
-    url: str
-    baudrate: int = 115200
-    timeout_s: float = 1.0
-    query: str = "MEAS?"
-    eol: str = "\r\n"
-    reply_pattern: str = r"^\s*\+?(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
-    samples: int = 1
-    zero_at_start: bool = False
-    tare_samples: int = 20
-
-
-@dataclass(frozen=True)
-class SerialBackend:
-    """Serial hardware (``backend.serial``; shared/spec/serial-protocol.md)."""
-
-    controllers: tuple[SerialController, ...]
-    axes: tuple[tuple[str, AxisMap], ...]
-    gauge: Gauge
-    on_target_timeout_s: float = 5.0
-    poll_interval_s: float = 0.005
-    retries: int = 2
-
-    def axis_of(self, actuator: str) -> AxisMap:
-        """The (controller, axis) an actuator is driven by."""
-        return dict(self.axes)[actuator]
+#: The backend kinds a stage config can name (each has its class in
+#: :data:`microctl.backends.base.BACKENDS`).
+BACKEND_KINDS = ("simulated", "serial")
 
 
 @dataclass(frozen=True)
@@ -243,7 +200,29 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
         raw, "stage", ["name", "dof", "actuators", "tool", "physics", "corrections"], required=["actuators", "tool"]
     )
     name = ctx.string(raw.get("name", "stage"), "stage.name")
-    dof_raw = raw.get("dof", ["z", "rx", "ry"])
+    dof = _parse_dof(ctx, raw.get("dof", ["z", "rx", "ry"]))
+    actuators = _parse_actuators(ctx, raw["actuators"], dof)
+    tool = _parse_tool(ctx, raw["tool"], actuators, dof)
+    physics = _parse_physics(ctx, raw.get("physics"), dof)
+
+    # corrections: what a diagnosis found. Mean causes correct the AFM (static ones) or the
+    # extended model (dynamic ones); noise causes (stick-slip) tell the residual model which
+    # actuators scatter (microctl.models.training.noise_features_for)
+    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
+    stage = Stage(
+        name=name,
+        dof=tuple(dof),
+        actuators=tuple(actuators),
+        tool=tool,
+        physics=physics,
+        corrections=corrections,
+    )
+    _check_conditioning(ctx, stage)
+    return stage
+
+
+def _parse_dof(ctx: FieldReader, dof_raw: Any) -> list[str]:
+    """``stage.dof``: hinge DoF (eq. 5), distinct twist components in twist order."""
     if not isinstance(dof_raw, list) or not dof_raw:
         raise ctx.fail("stage.dof", f"expected a non-empty list of twist components from {list(TWIST_COMPONENTS)}")
     dof = []
@@ -256,8 +235,11 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
     dof.sort(key=TWIST_COMPONENTS.index)
     if tuple(dof) != tuple(dof_raw):
         raise ctx.fail("stage.dof", f"list the DoF in twist order, i.e. {dof}")
+    return dof
 
-    acts_raw = raw["actuators"]
+
+def _parse_actuators(ctx: FieldReader, acts_raw: Any, dof: list[str]) -> list[Actuator]:
+    """``stage.actuators``: at least one per DoF, ranges inside the hardware limits, names unique."""
     if not isinstance(acts_raw, list):
         raise ctx.fail("stage.actuators", "expected a list of actuators")
     if len(acts_raw) < len(dof):
@@ -285,8 +267,12 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
         if any(act.name == b.name for b in actuators):
             raise ctx.fail(f"{p}.name", f"actuator name '{act.name}' is used twice")
         actuators.append(act)
+    return actuators
 
-    t = ctx.mapping(raw["tool"], "stage.tool", ["name", "point_mm", "direction"], ["point_mm"])
+
+def _parse_tool(ctx: FieldReader, raw: Any, actuators: list[Actuator], dof: list[str]) -> Tool:
+    """``stage.tool``: the tool point and gauge direction (eq. 13), its name clashing with none."""
+    t = ctx.mapping(raw, "stage.tool", ["name", "point_mm", "direction"], ["point_mm"])
     tool = Tool(
         name=ctx.string(t.get("name", "t"), "stage.tool.name"),
         point_mm=ctx.vector(t["point_mm"], "stage.tool.point_mm", 3),  # type: ignore[arg-type]
@@ -294,9 +280,13 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
     )
     if tool.name in {a.name for a in actuators} or tool.name in dof:
         raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
+    return tool
 
+
+def _parse_physics(ctx: FieldReader, raw: Any, dof: list[str]) -> Physics:
+    """``stage.physics``: contact stiffness, preload and flexure stiffness per DoF (all > 0)."""
     ph = ctx.mapping(
-        raw.get("physics"),
+        raw,
         "stage.physics",
         ["contact_stiffness_n_per_um", "preload_n", "flexure_stiffness"],
         none_ok=True,
@@ -316,21 +306,7 @@ def _parse_stage(ctx: FieldReader, raw: Any) -> Stage:
     for i, k in enumerate(physics.flexure_stiffness):
         if k <= 0:
             raise ctx.fail(f"stage.physics.flexure_stiffness[{i}]", f"must be > 0, got {k!r}")
-
-    # corrections: what a diagnosis found. Mean causes correct the AFM (static ones) or the
-    # extended model (dynamic ones); noise causes (stick-slip) tell the residual model which
-    # actuators scatter (microctl.models.training.noise_features_for)
-    corrections = _parse_effects(ctx, raw.get("corrections"), "stage.corrections", len(actuators))
-    stage = Stage(
-        name=name,
-        dof=tuple(dof),
-        actuators=tuple(actuators),
-        tool=tool,
-        physics=physics,
-        corrections=corrections,
-    )
-    _check_conditioning(ctx, stage)
-    return stage
+    return physics
 
 
 def _check_conditioning(ctx: FieldReader, stage: Stage) -> None:
@@ -374,8 +350,8 @@ def _parse_backend(ctx: FieldReader, raw: Any, stage: Stage) -> Backend:
         return Backend()
     raw = ctx.mapping(raw, "backend", ["kind", "simulated", "serial"])
     kind = raw.get("kind", "simulated")
-    if kind not in ("simulated", "serial"):
-        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: simulated, serial")
+    if kind not in BACKEND_KINDS:
+        raise ctx.fail("backend.kind", f"'{kind}' is not a backend; valid: {', '.join(BACKEND_KINDS)}")
     s = ctx.mapping(
         raw.get("simulated"),
         "backend.simulated",
@@ -396,106 +372,10 @@ def _parse_backend(ctx: FieldReader, raw: Any, stage: Stage) -> Backend:
     )
     serial = None
     if raw.get("serial") is not None:
-        serial = _parse_serial(ctx, raw["serial"], stage)
+        serial = parse_serial(ctx, raw["serial"], stage)
     if kind == "serial" and serial is None:
         raise ctx.fail("backend.serial", "is required when backend.kind is 'serial'")
     return Backend(kind=kind, simulated=sim, serial=serial)
-
-
-def _parse_serial(ctx: FieldReader, raw: Any, stage: Stage) -> SerialBackend:
-    p = "backend.serial"
-    raw = ctx.mapping(
-        raw,
-        p,
-        ["controllers", "axes", "gauge", "on_target_timeout_s", "poll_interval_s", "retries"],
-        required=["controllers", "axes", "gauge"],
-    )
-    if not isinstance(raw["controllers"], list) or not raw["controllers"]:
-        raise ctx.fail(f"{p}.controllers", "expected a non-empty list of drivers")
-    controllers = []
-    for i, c in enumerate(raw["controllers"]):
-        cp = f"{p}.controllers[{i}]"
-        c = ctx.mapping(c, cp, ["name", "url", "baudrate", "timeout_s"], ["name", "url"])
-        ctrl = SerialController(
-            name=ctx.string(c["name"], f"{cp}.name"),
-            url=ctx.string(c["url"], f"{cp}.url"),
-            baudrate=ctx.integer(c.get("baudrate", 115200), f"{cp}.baudrate", lo=1, hi=MAX_BAUDRATE),
-            timeout_s=ctx.number(c.get("timeout_s", 1.0), f"{cp}.timeout_s", positive=True, hi=MAX_WAIT_S),
-        )
-        if any(ctrl.name == o.name for o in controllers):
-            raise ctx.fail(f"{cp}.name", f"controller name '{ctrl.name}' is used twice")
-        controllers.append(ctrl)
-    names = [c.name for c in controllers]
-    axes_raw = ctx.mapping(raw["axes"], f"{p}.axes", stage.actuator_names, required=stage.actuator_names)
-    axes = []
-    used = set()
-    for act in stage.actuator_names:
-        ap = f"{p}.axes.{act}"
-        m = ctx.mapping(axes_raw[act], ap, ["controller", "axis"], ["controller", "axis"])
-        ctrl = ctx.string(m["controller"], f"{ap}.controller")
-        if ctrl not in names:
-            raise ctx.fail(f"{ap}.controller", f"'{ctrl}' is not a configured controller; valid: {', '.join(names)}")
-        if isinstance(m["axis"], bool) or not isinstance(m["axis"], (str, int)):
-            raise ctx.fail(f"{ap}.axis", f"expected an axis id such as '1' or 'A', got {m['axis']!r}")
-        axis = str(m["axis"]).strip()
-        if not axis or any(ch.isspace() for ch in axis):
-            raise ctx.fail(f"{ap}.axis", f"{m['axis']!r} is not a valid axis id (no spaces)")
-        ctx.ascii_text(axis, f"{ap}.axis", what="an axis id")
-        if "=" in axis:
-            raise ctx.fail(f"{ap}.axis", f"'{axis}' is not a valid axis id ('=' separates axis and value in replies)")
-        if (ctrl, axis) in used:
-            raise ctx.fail(f"{ap}.axis", f"axis {axis} of {ctrl} is mapped to two actuators")
-        used.add((ctrl, axis))
-        axes.append((act, AxisMap(controller=ctrl, axis=axis)))
-    gp = f"{p}.gauge"
-    g = ctx.mapping(
-        raw["gauge"], gp,
-        ["url", "baudrate", "timeout_s", "query", "eol", "reply_pattern", "samples", "zero_at_start", "tare_samples"],
-        ["url"],
-    )
-    gd = Gauge(url="")
-    pattern = g.get("reply_pattern", gd.reply_pattern)
-    try:
-        compiled = re.compile(pattern)
-    except (re.error, TypeError) as exc:
-        raise ctx.fail(f"{gp}.reply_pattern", f"is not a valid regular expression: {exc}") from None
-    if compiled.groups > 1:
-        raise ctx.fail(f"{gp}.reply_pattern", "must have at most one capture group (the number)")
-    query = ctx.ascii_text(g.get("query", gd.query), f"{gp}.query", what="the gauge query")
-    eol = ctx.ascii_text(g.get("eol", gd.eol), f"{gp}.eol", what="the line ending", blank_ok=True, controls_ok=True)
-    if not eol.endswith(("\n", "\r")):
-        raise ctx.fail(f"{gp}.eol", f"{eol!r} must end with a line feed or carriage return, e.g. \"\\r\\n\"")
-    gauge = Gauge(
-        url=ctx.string(g["url"], f"{gp}.url"),
-        baudrate=ctx.integer(g.get("baudrate", gd.baudrate), f"{gp}.baudrate", lo=1, hi=MAX_BAUDRATE),
-        timeout_s=ctx.number(g.get("timeout_s", gd.timeout_s), f"{gp}.timeout_s", positive=True, hi=MAX_WAIT_S),
-        query=query,
-        eol=eol,
-        reply_pattern=pattern,
-        samples=ctx.integer(g.get("samples", gd.samples), f"{gp}.samples", lo=1, hi=10000),
-        zero_at_start=ctx.boolean(g.get("zero_at_start", gd.zero_at_start), f"{gp}.zero_at_start"),
-        tare_samples=ctx.integer(g.get("tare_samples", gd.tare_samples), f"{gp}.tare_samples", lo=1, hi=10000),
-    )
-    if gauge.zero_at_start:
-        for i, a in enumerate(stage.actuators):
-            if not a.range_um[0] <= 0.0 <= a.range_um[1]:
-                raise ctx.fail(
-                    f"{gp}.zero_at_start",
-                    f"tares the gauge at the zero state q = 0, but actuator {a.name} (stage.actuators[{i}]) has "
-                    f"range_um {list(a.range_um)}, which excludes 0; set zero_at_start: false or widen the range",
-                )
-    on_target_timeout_s = ctx.number(raw.get("on_target_timeout_s", 5.0), f"{p}.on_target_timeout_s",
-                                     positive=True, hi=MAX_WAIT_S)
-    poll_interval_s = ctx.number(raw.get("poll_interval_s", 0.005), f"{p}.poll_interval_s", positive=True,
-                                 hi=on_target_timeout_s)
-    return SerialBackend(
-        controllers=tuple(controllers),
-        axes=tuple(axes),
-        gauge=gauge,
-        on_target_timeout_s=on_target_timeout_s,
-        poll_interval_s=poll_interval_s,
-        retries=ctx.integer(raw.get("retries", 2), f"{p}.retries", lo=0, hi=100),
-    )
 
 
 # --------------------------------------------------------------------------------------

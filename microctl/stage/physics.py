@@ -48,7 +48,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 
 from microctl.errors import SolveError
-from microctl.stage.causes import Effects, stage_parts
+from microctl.stage.causes import Effects, StageParts, stage_parts
 from microctl.stage.geometry import Stage
 from microctl.stage.kinematics import contact_map, hinge_jacobian, tool_vector
 from microctl.stage.sensor import Sensor
@@ -77,14 +77,10 @@ class ContactModel:
         Contact height rows a_i (µm of normal displacement per unit pose).
     nd : ndarray, shape (n_c,)
         n_i·d_i: normal ball motion per actuator µm.
-    gain : ndarray, shape (n_c,)
-        Actuator gains (1 when healthy).
-    gap_um : ndarray, shape (n_c,)
-        How far each ball sits low (contact loss), µm.
-    lag_um : ndarray, shape (n_c,)
-        Backlash lag per actuator, µm.
-    friction_std_per_um : ndarray, shape (n_c,)
-        Stick-slip scatter per µm of actuator motion.
+    parts : StageParts
+        The causes' physical changes (:func:`~microctl.stage.causes.stage_parts`); the per-actuator
+        ``gain``, ``gap_um``, ``lag_um``, ``friction_std_per_um`` and the ``sensor`` are read from it
+        (properties), so each is held in one place.
     k_h : ndarray, shape (n_p,)
         Flexure stiffness per DoF (diagonal of K_h).
     f_preload : ndarray, shape (n_p,)
@@ -93,8 +89,6 @@ class ContactModel:
         Contact stiffness, N/µm.
     w_true : ndarray, shape (n_p,)
         True tool map (eq. 13 with the tool offset).
-    sensor : Sensor
-        Gauge transfer (scale, quadratic coefficient, drift rate).
     q_zero : ndarray, shape (n_c,)
         Actual actuator positions at the zero state (−lag: approached "up").
     p_zero : ndarray, shape (n_p,)
@@ -104,16 +98,37 @@ class ContactModel:
 
     A: np.ndarray
     nd: np.ndarray
-    gain: np.ndarray
-    gap_um: np.ndarray
-    lag_um: np.ndarray
-    friction_std_per_um: np.ndarray
+    parts: StageParts
     k_h: np.ndarray
     f_preload: np.ndarray
     k_c: float
     w_true: np.ndarray
-    sensor: Sensor
     q_zero: np.ndarray
+
+    @property
+    def gain(self) -> np.ndarray:
+        """Actuator gains (1 when healthy), shape (n_c,)."""
+        return self.parts.gain
+
+    @property
+    def gap_um(self) -> np.ndarray:
+        """How far each ball sits low (contact loss), µm, shape (n_c,)."""
+        return self.parts.gap_um
+
+    @property
+    def lag_um(self) -> np.ndarray:
+        """Backlash lag per actuator, µm, shape (n_c,)."""
+        return self.parts.lag_um
+
+    @property
+    def friction_std_per_um(self) -> np.ndarray:
+        """Stick-slip scatter per µm of actuator motion, shape (n_c,)."""
+        return self.parts.friction_std_per_um
+
+    @property
+    def sensor(self) -> Sensor:
+        """Gauge transfer (scale, quadratic coefficient, drift rate)."""
+        return self.parts.sensor
 
     @cached_property
     def p_zero(self) -> np.ndarray:
@@ -153,15 +168,11 @@ def _cached_model(stage: Stage, effects: Effects) -> ContactModel:
     model = ContactModel(
         A=A,
         nd=nd,
-        gain=parts.gain,
-        gap_um=parts.gap_um,
-        lag_um=parts.lag_um,
-        friction_std_per_um=parts.friction_std_per_um,
+        parts=parts,
         k_h=k_h,
         f_preload=k_h * p_free,
         k_c=float(ph.contact_stiffness_n_per_um),
         w_true=tool_vector(stage, parts),  # eq. 13 with the moved tool point
-        sensor=parts.sensor,
         q_zero=-parts.lag_um * ZERO_STATE_DIRECTION,  # backlash at the zero state, approached "up"
     )
     for arr in (model.A, model.nd, model.gain, model.gap_um, model.lag_um, model.friction_std_per_um,

@@ -87,13 +87,12 @@ def _run(args: argparse.Namespace) -> int:
     if not args.quiet:
         inc = res.get("incremental")
         if inc is not None:
-            from microctl.experiments.report import (
-                CONTROLLER_LABELS as labels,  # as in report.md, the figures
-            )
-            w = max(len("target (µm)"), *(len(labels.get(n, n)) + len(" VSSE (µm²)") for n in inc["controllers"]))
+            from microctl.experiments.controllers import label as label_of  # as in report.md, the figures
+
+            w = max(len("target (µm)"), *(len(label_of(n)) + len(" VSSE (µm²)") for n in inc["controllers"]))
             print(f"{'target (µm)':{w}s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]), file=sys.stderr)
             for name, c in inc["controllers"].items():
-                label = labels.get(name, name)
+                label = label_of(name)
                 print(f"{label + ' MSSE (µm)':{w}s}" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
                 print(f"{label + ' VSSE (µm²)':{w}s}" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
         bars = res.get("bars", {})
