@@ -78,6 +78,9 @@ from microctl.models.training import (  # noqa: E402
 from microctl.stage.config import StageConfig, parse_stage_config  # noqa: E402
 from microctl.stage.physics import actual_positions, ball_heights, solve_equilibrium  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import rig_families  # noqa: E402
+
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
 STD_BAR, ERR_BAR_UM, CAL_BAR = 1.25, 0.1, (0.67, 1.5)
 CONTACTS_MM = ([15, 0, 5], [0, -15, 5], [-15, 0, 5], [0, 15, 5])
@@ -208,6 +211,95 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
     return out
 
 
+# --------------------------------------------------------------------------- rig families (issue 18)
+
+#: Fine oracle search on the families (the default rigs keep the shipped settings).
+FAMILY_ORACLE = {"grid": 41, "line_points": 81, "zooms": 3}
+#: Random reaching poses per target that check the oracle, and the tolerance of "quieter"
+#: (relative, in std: the truth is exact up to round-off, or Monte Carlo with common random numbers).
+VERIFY_POSES, VERIFY_TOL = 400, 0.01
+
+
+def _random_reaching(oracle: OracleController, stage, s: np.ndarray, target: float, n: int, seed: int) -> np.ndarray:
+    """``n`` random poses of the redundant set moved onto true_mean = target, in range, shape (k, n_p)."""
+    rs = oracle.rset
+    U, _ = rs.grid(target, 11)
+    C = (U / rs.D) @ rs.N
+    r = np.random.default_rng(seed)
+    Cr = r.uniform(C.min(axis=0), C.max(axis=0), size=(n, C.shape[1]))
+    Ur = (Cr @ rs.N.T) * rs.D + (U[0] / rs.D @ rs.v_hat) * rs.v_hat * rs.D
+    for _ in range(8):  # Newton along dir_u onto the true mean
+        t = np.asarray(stage.true_mean(s, Ur))
+        slope = (np.asarray(stage.true_mean(s, Ur + 1e-4 * rs.dir_u)) - t) / 1e-4
+        Ur = Ur + ((target - t) / np.where(np.abs(slope) > 1e-9, slope, 1e-9))[:, None] * rs.dir_u
+    ok = np.abs(np.asarray(stage.true_mean(s, Ur)) - target) <= 1e-6 * max(1.0, target)
+    q = Ur @ oracle.afm.K.T
+    ok &= np.all((q >= oracle.afm.lo - 1e-9) & (q <= oracle.afm.hi + 1e-9), axis=1)
+    return Ur[ok]
+
+
+def _model_noise(eafm: EAFM, s: np.ndarray, u: np.ndarray) -> tuple[float, float]:
+    """The model's predicted noise std exp(g)^(1/2) (with g's variance) and f's posterior std at u."""
+    p = eafm.predict(s, u)
+    return float(np.sqrt(np.exp(p.g_mean[0] + p.g_var[0] / 2.0))), float(np.sqrt(p.f_var[0]))
+
+
+def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev, seed: int) -> dict:
+    """Solve one target with the method, the oracle and the AFM; score them with the family's truth."""
+    res = ctrl.solve(target, s, u_init=prev)
+    o = oracle.solve(target, s)
+    a = base.solve(target, s)
+    rand = _random_reaching(oracle, stage, s, target, VERIFY_POSES, seed)
+    rand_std = np.sqrt(np.asarray(stage.true_var(s, rand))) if len(rand) else np.zeros(0)
+    viol = int(np.sum(rand_std < o.predicted_std_um * (1.0 - VERIFY_TOL)))
+    mc_mean, mc_var = stage.mc_moments(s, res.u[None, :], n_draws=4000, seed=seed)
+    true_mean = float(stage.true_mean(s, res.u))
+    noise_c, f_c = _model_noise(ctrl.eafm, s, res.u)
+    noise_o, f_o = _model_noise(ctrl.eafm, s, o.u)
+    return {"pred_noise_std_um": noise_c, "f_std_um": f_c, "pred_noise_std_oracle_um": noise_o,
+            "f_std_oracle_um": f_o, "target_um": target, "err_um": true_mean - target, "std_um": math.sqrt(float(stage.true_var(s, res.u))),
+            "mc_std_um": float(math.sqrt(mc_var[0])), "mc_err_um": float(mc_mean[0] - target),
+            "oracle_std_um": o.predicted_std_um, "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
+            "afm_err_um": float(stage.true_mean(s, a.u)) - target,
+            "pred_std_um": res.predicted_std_um, "u": res.u.tolist(), "q_um": res.q.round(3).tolist(),
+            "q_prev_um": s[1:].round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "afm_q_um": a.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s,
+            "verify_n": int(len(rand)), "verify_violations": viol,
+            "verify_min_std_um": float(rand_std.min()) if len(rand) else float("nan")}
+
+
+def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict:
+    """:func:`run_rig` on a rig of ``family`` (scripts/rig_families.py): the same collect, train
+    and solve, scored with the family's truth, the oracle by the fine search and checked
+    against random reaching poses."""
+    rig = rig_families.make_family_rig(family, seed)
+    cfg = rig.config
+    afm = AnalyticForwardModel(cfg.stage)
+    out = {"seed": seed, "family": family, **rig.describe(), "runs": []}
+    for n in sizes:
+        for name in methods:
+            meth = METHODS[name]
+            t0 = time.perf_counter()
+            with tempfile.TemporaryDirectory() as tmp:
+                log_path = Path(tmp) / "train.csv"
+                with rig.stage(seed + 10_000) as stage:
+                    run_collect(stage, training_moves(afm, meth.design, n, seed), log_path, quiet=True)
+                data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
+            model = train_residual_model(data, afm, meth.model)
+            t_fit = time.perf_counter() - t0
+            ctrl = OptimalController(EAFM(afm, model), meth.controller)
+            base = AFMController(afm)
+            rows = []
+            with rig.stage(seed + 20_000) as stage:
+                oracle = OracleController(afm, stage, **FAMILY_ORACLE)
+                prev = None
+                for k, target in enumerate(TARGETS_UM):
+                    rows.append(_score_target(stage, ctrl, oracle, base, target, stage.state, prev, seed * 10 + k))
+                    prev = np.asarray(rows[-1]["u"])
+                    stage.move(prev)
+            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
+    return out
+
+
 # --------------------------------------------------------------------------- summary
 
 
@@ -290,6 +382,97 @@ def rig_table_markdown(table: list[dict]) -> list[str]:
                 cells.append(fmt.format(t[key]))
         L.append("| " + " | ".join(cells) + " |")
     return L
+
+
+def failing_targets(results: list[dict]) -> list[dict]:
+    """Every rig-target that misses the bar, with why: ``scatter`` (std > 1.25 x oracle), ``mean``
+    (|true error| > 0.1 µm) or both, and the numbers to read it by."""
+    out = []
+    for res in results:
+        for r in res["runs"]:
+            for t in r["targets"]:
+                why = [w for w, bad in (("scatter", t["std_um"] > STD_BAR * t["oracle_std_um"]),
+                                        ("mean", abs(t["err_um"]) > ERR_BAR_UM)) if bad]
+                if why:
+                    out.append({"family": res.get("family", "stick_slip"), "seed": res["seed"], "n": r["n"],
+                                "method": r["method"], "why": "+".join(why), **t})
+    return out
+
+
+def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
+    """:func:`summarise` per family, with the oracle's check against random reaching poses."""
+    table = []
+    for fam in families:
+        sub = [r for r in results if r["family"] == fam]
+        if not sub:
+            continue
+        for row in summarise(sub, sizes, methods):
+            tg = [t for res in sub for r in res["runs"] if r["n"] == row["n"] and r["method"] == row["method"]
+                  for t in r["targets"]]
+            row.update(family=fam, verify_n=sum(t["verify_n"] for t in tg),
+                       verify_violations=sum(t["verify_violations"] for t in tg),
+                       mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)))
+            table.append(row)
+    return table
+
+
+FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
+    ("verify_violations", "oracle beaten by a random pose", None),
+    ("mc_std_dev_max", "max abs(MC std / exact std - 1)", "{:.3f}"),
+)
+
+
+def family_table_markdown(table: list[dict]) -> list[str]:
+    """The per-family summary as a Markdown table."""
+    L = ["| " + " | ".join(h for _, h, _ in FAMILY_COLUMNS) + " |", "|" + "---|" * len(FAMILY_COLUMNS)]
+    for t in table:
+        cells = []
+        for key, _, fmt in FAMILY_COLUMNS:
+            if fmt is None:
+                total = {"cal_pass": t["cal_n"], "verify_violations": t["verify_n"]}.get(key, t["rigs"])
+                cells.append(f"{t[key]}/{total}")
+            else:
+                cells.append(fmt.format(t[key]))
+        L.append("| " + " | ".join(cells) + " |")
+    return L
+
+
+def _fmt_fail(f: dict) -> str:
+    return (f"{f['family']} rig {f['seed']} n={f['n']} {f['method']} t={f['target_um']:g}: {f['why']}; "
+            f"err {f['err_um']:+.3f} µm, std {f['std_um']:.3f} vs oracle {f['oracle_std_um']:.3f} "
+            f"({f['std_um'] / f['oracle_std_um']:.2f}x), AFM {f['afm_std_um']:.3f}; predicted std {f['pred_std_um']:.3f} "
+            f"(noise {f['pred_noise_std_um']:.3f}, f {f['f_std_um']:.3f}); model's noise at the oracle pose "
+            f"{f['pred_noise_std_oracle_um']:.3f}; q_prev {f['q_prev_um']} q {f['q_um']} oracle q {f['oracle_q_um']}")
+
+
+def print_families(table: list[dict], results: list[dict]) -> None:
+    """The family table and every failing rig-target."""
+    print("\nrig families: " + " ; ".join(f"{t['family']} n={t['n']} {t['method']}: {t['rigs_pass']}/{t['rigs']} pass "
+                                         f"(std {t['rigs_std_pass']}, err {t['rigs_err_pass']}), ratio med "
+                                         f"{t['ratio_median']:.2f} p90 {t['ratio_p90']:.2f} max {t['ratio_max']:.2f}, "
+                                         f"|err| med {t['err_median_um']:.3f} max {t['err_max_um']:.3f}, calib "
+                                         f"{t['cal_pass']}/{t['cal_n']}, oracle beaten {t['verify_violations']}/"
+                                         f"{t['verify_n']}" for t in table).replace(" ; ", "\n  "))
+    fails = failing_targets(results)
+    print(f"\nfailing rig-targets ({len(fails)}):")
+    for f in fails:
+        print("  " + _fmt_fail(f))
+
+
+def families_markdown(table: list[dict], results: list[dict], header: str, wall_s: float) -> str:
+    """The family run as Markdown (``--family ... --markdown FILE``)."""
+    L = [header, "", "### Rig families (scripts/rig_families.py)", "",
+         f"Rigs passing = at every target true std <= {STD_BAR} x the oracle's AND |true error| <= {ERR_BAR_UM} µm; "
+         f"calibration = true / predicted std in {list(CAL_BAR)}. Targets {list(TARGETS_UM)} µm in sequence. "
+         f"Oracle: grid search {FAMILY_ORACLE} over the redundant set on the family's exact truth; checked against "
+         f"{VERIFY_POSES} random reaching poses per target (a violation = a random pose more than "
+         f"{VERIFY_TOL:.0%} quieter in std). MC column: the chosen pose's std by 4000 draws of the simulator "
+         "against the exact std.", ""]
+    L += family_table_markdown(table)
+    fails = failing_targets(results)
+    L += ["", f"Failing rig-targets ({len(fails)}):", ""] + [f"- {_fmt_fail(f)}" for f in fails]
+    L += ["", f"Wall time {wall_s:.0f} s.", ""]
+    return "\n".join(L)
 
 
 def seed_set_columns() -> list[str]:
@@ -387,7 +570,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed-sets", type=int, default=0, help="also run the main job over this many seed sets")
     ap.add_argument("--experiment", default=str(MAIN_JOB), help="experiment file for --seed-sets")
     ap.add_argument("--markdown", metavar="FILE", help="also write the tables as Markdown (docs/generated/)")
+    ap.add_argument("--family", default=None,
+                    help="rig families (scripts/rig_families.py), comma-separated or 'all': "
+                         f"{', '.join(rig_families.FAMILIES)}; default: today's stick-slip rigs")
     args = ap.parse_args(argv)
+    if args.family:
+        return main_families(args)
     sizes = tuple(int(s) for s in args.sizes.split(","))
     methods = tuple(m.strip() for m in args.methods.split(","))
     unknown = [m for m in methods if m not in METHODS]
@@ -442,6 +630,46 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"summary": table, "rigs": results, "seed_sets": sets}, indent=1,
                                               default=float))
+    return 0
+
+
+def main_families(args) -> int:
+    """``--family``: the rigs of each family, summarised per family."""
+    sizes = tuple(int(x) for x in args.sizes.split(","))
+    methods = tuple(m.strip() for m in args.methods.split(","))
+    fams = rig_families.FAMILIES if args.family == "all" else tuple(f.strip() for f in args.family.split(","))
+    bad = [m for m in methods if m not in METHODS] + [f for f in fams if f not in rig_families.FAMILIES]
+    if bad:
+        raise SystemExit(f"unknown method(s) or family(ies) {bad}")
+    seeds = [args.seed + k for k in range(args.rigs)]
+    header = (f"machine: {platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpu, Python "
+              f"{platform.python_version()}, numpy {np.__version__}; families {list(fams)}, {args.rigs} rigs each "
+              f"(seeds {args.seed}..{args.seed + args.rigs - 1}), sizes {list(sizes)}, methods {list(methods)}, "
+              f"targets {list(TARGETS_UM)} µm, jobs {args.jobs}")
+    print(header)
+    t0 = time.perf_counter()
+    jobs = [(f, s) for f in fams for s in seeds]
+    results: list[dict] = []
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as ex:
+            futs = [ex.submit(run_family_rig, f, s, sizes, methods) for f, s in jobs]
+            for fu in futs:
+                results.append(fu.result())
+                print(f"  {results[-1]['family']} rig {results[-1]['seed']} done", file=sys.stderr)
+    else:
+        for f, s in jobs:
+            results.append(run_family_rig(f, s, sizes, methods))
+            print(f"  {f} rig {s} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+            if args.json:  # partial results survive an interrupted run
+                Path(args.json).write_text(json.dumps({"rigs": results}, indent=1, default=float))
+    table = family_tables(results, fams, sizes, methods)
+    print_families(table, results)
+    wall = time.perf_counter() - t0
+    print(f"wall time {wall:.0f} s")
+    if args.markdown:
+        Path(args.markdown).write_text(families_markdown(table, results, header, wall))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"summary": table, "rigs": results}, indent=1, default=float))
     return 0
 
 

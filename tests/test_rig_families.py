@@ -1,0 +1,101 @@
+"""The rig families' truth (scripts/rig_families.py) against Monte Carlo of their own simulator.
+
+The exact moments (``FamilyStage.moments``: the noise-free reading and the affine propagation
+of the actuator scatter) must agree with the readings of many independent stages making the
+same two moves, and the Monte Carlo fallback (``mc_moments``) with both.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def _families():
+    if str(_SCRIPTS) not in sys.path:
+        sys.path.insert(0, str(_SCRIPTS))
+    return importlib.import_module("rig_families")
+
+
+rf = _families()
+N_DRAWS = 800
+
+
+def _two_moves(rig):
+    """A first move to 18 µm and a second one down to 6 µm (turns actuators round), from the
+    redundant set's grid."""
+    from microctl.control.controller import RedundantSet
+    from microctl.models.afm import AnalyticForwardModel
+
+    afm = AnalyticForwardModel(rig.config.stage)
+    rs = RedundantSet(afm)
+    U1, _ = rs.grid(18.0, 5)
+    U2, _ = rs.grid(6.0, 5)
+
+    def ok(U):
+        q = U @ afm.K.T
+        return U[np.all((q >= 0.0) & (q <= 32.0), axis=1)]
+
+    U1, U2 = ok(U1), ok(U2)
+    return U1[len(U1) // 3], U2[(2 * len(U2)) // 3]
+
+
+@pytest.mark.parametrize("family,seed", [("clean", 1), ("stick_slip", 2), ("stroke_patch", 3), ("light_ball", 2),
+                                         ("settling", 4), ("reversal", 5), ("stiction", 6), ("extension", 7),
+                                         ("mix", 8)])
+def test_exact_moments_match_monte_carlo_of_the_simulator(family, seed):
+    rig = rf.make_family_rig(family, seed)
+    u1, u2 = _two_moves(rig)
+    readings = np.empty(N_DRAWS)
+    for k in range(N_DRAWS):
+        st = rig.stage(1000 + k)
+        st.move(u1)
+        if k == 0:  # the truth from the state (and direction history) the move starts at
+            s, st0 = st.state, rig.stage(1000)
+            st0.move(u1)
+        readings[k] = st.move(u2).t_um
+    mean, var, exact = st0.moments(s, u2[None, :])
+    assert exact[0]
+    sd = float(np.sqrt(var[0]))
+    se_mean = sd / np.sqrt(N_DRAWS)
+    assert abs(readings.mean() - mean[0]) < 5.0 * se_mean
+    # std of a sample std ~ sd / sqrt(2 N): 5 of them
+    assert abs(readings.std(ddof=1) / sd - 1.0) < 5.0 / np.sqrt(2 * N_DRAWS)
+    mc_mean, mc_var = st0.mc_moments(s, u2[None, :], n_draws=20000, seed=3)
+    assert abs(np.sqrt(mc_var[0]) / sd - 1.0) < 5.0 / np.sqrt(2 * 20000)
+    assert abs(mc_mean[0] - mean[0]) < 5.0 * sd / np.sqrt(20000)
+
+
+def test_family_noise_structures_do_what_they_say():
+    """Each structure's actuator scatter responds to what its docstring names, and only to it."""
+    q_prev = np.array([[10.0, 10.0, 10.0, 10.0]])
+    force = np.full((1, 4), 100.0)
+    no_rev = np.zeros((1, 4), dtype=bool)
+    ss = {"kind": "stick_slip", "act": [0], "c": [0.05]}
+    assert rf._term_std(ss, q_prev, q_prev + 4.0, no_rev, force, 100.0)[0, 0] == pytest.approx(0.2)
+    assert rf._term_std(ss, q_prev, q_prev, no_rev, force, 100.0)[0, 0] == 0.0
+    patch = {"kind": "stroke_patch", "act": [1], "lo": 12.0, "hi": 18.0, "edge": 0.5, "a": 0.2}
+    inside = rf._term_std(patch, q_prev, np.array([[0.0, 15.0, 0.0, 0.0]]), no_rev, force, 100.0)
+    outside = rf._term_std(patch, q_prev, np.array([[0.0, 25.0, 0.0, 0.0]]), no_rev, force, 100.0)
+    assert inside[0, 1] == pytest.approx(0.2, rel=1e-3) and outside[0, 1] < 1e-6
+    rev = {"kind": "reversal", "act": [2], "r": [0.2], "scale": 0.5}
+    turned = np.array([[False, False, True, False]])
+    assert rf._term_std(rev, q_prev, q_prev - 5.0, turned, force, 100.0)[0, 2] == pytest.approx(0.2, rel=1e-3)
+    assert rf._term_std(rev, q_prev, q_prev + 5.0, no_rev, force, 100.0)[0, 2] == 0.0
+    light = {"kind": "light_ball", "act": [0, 1, 2, 3], "s0": 0.02, "gamma": 1.0, "cap": 0.5}
+    f = np.array([[100.0, 50.0, 25.0, 0.0]])
+    sd = rf._term_std(light, q_prev, q_prev, no_rev, f, 100.0)[0]
+    assert sd[:3] == pytest.approx([0.02, 0.04, 0.08]) and sd[3] == 0.5
+
+
+def test_rigs_are_seeded_and_keep_every_ball_loaded():
+    a, b = rf.make_family_rig("light_ball", 4), rf.make_family_rig("light_ball", 4)
+    assert a.describe() == b.describe()
+    assert rf._all_balls_loaded(a.config)
+    assert rf.make_family_rig("clean", 0).terms == [] and rf.make_family_rig("clean", 0).driver_std_um == 0.0
