@@ -101,6 +101,8 @@ METHODS = {
     "paper": Method("paper", "space_filling", ResidualModelSettings(noise_model="hgp", linear_trend=False),
                     ControllerSettings(r_e="noise_mean")),
     "hgp": Method("hgp", "covering", ResidualModelSettings(noise_model="hgp"), ControllerSettings()),
+    # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
+    "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
     # the default with the noise parameters' uncertainty propagated into the objective
     "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
