@@ -65,6 +65,10 @@ class ControlResult:
     noise_upper_std_um : float
         Square root of the upper quantile ``exp(mu_g + kappa s_g)`` of the noise variance
         (``ControllerSettings.kappa``; NaN without an EAFM).
+    bias_std_um : float
+        Predicted uncertainty of the mean at u: ``sqrt(f_var)``, the posterior std of the mean
+        correction (large where f extrapolates, e.g. a corner the training never visited); NaN
+        without an EAFM. ``predicted_std_um`` combines it with the noise.
     vs_baseline : NoiseComparison or None
         For the optimal controller given a baseline: is u credibly quieter than the
         baseline's command from the same state?
@@ -88,6 +92,7 @@ class ControlResult:
     n_starts: int
     noise_std_um: float = float("nan")
     noise_upper_std_um: float = float("nan")
+    bias_std_um: float = float("nan")
     vs_baseline: "NoiseComparison | None" = None
     baseline: "ControlResult | None" = None
 
@@ -101,6 +106,7 @@ class ControlResult:
             "iterations": self.iterations, "solve_time_s": self.solve_time_s, "success": self.success,
             "constraint_residual_um": self.constraint_residual, "n_starts": self.n_starts,
             "noise_std_um": self.noise_std_um, "noise_upper_std_um": self.noise_upper_std_um,
+            "bias_std_um": self.bias_std_um,
             "vs_baseline": None if self.vs_baseline is None else self.vs_baseline.to_dict(),
         }
 

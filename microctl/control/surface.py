@@ -151,4 +151,5 @@ class EAFMSurface:
             constraint_residual=float(abs(p.t_mean[0] - target)), n_starts=int(attempts.get("n", 0)),
             noise_std_um=math.exp(0.5 * (g + 0.5 * gv)),
             noise_upper_std_um=math.exp(0.5 * (g + self.settings.kappa * math.sqrt(gv))),
+            bias_std_um=math.sqrt(max(float(p.f_var[0]), 0.0)),
         )

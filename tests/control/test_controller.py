@@ -287,3 +287,16 @@ def test_a_registered_r_e_summary_is_a_setting_and_is_solved(afm, eafm, second_m
 def test_an_unregistered_r_e_summary_is_refused():
     with pytest.raises(ConfigError, match="r_e: must be one of noise_quantile, noise_mean, noise_median"):
         ControllerSettings(r_e="toy_second_moment")
+
+
+def test_result_states_the_bias_uncertainty_beside_the_scatter(afm, eafm, opt):
+    """bias_std_um is the std of the GP's mean correction at the command (from the model's own
+    predictive distribution, VHGPR.predict), and with the noise it makes the predictive std:
+    predicted_std^2 = bias_std^2 + noise_std^2 (noise_std^2 = E[exp(g)] = exp(mu_g + s_g^2/2))."""
+    s = _states(afm, 1, seed=4)[0]
+    res = opt.solve(14.0, s)
+    x = np.concatenate([s, res.u])[None, :]
+    f_var = eafm.model.predict(x).f_var[0]
+    assert res.bias_std_um == pytest.approx(np.sqrt(f_var), rel=1e-9)
+    assert res.predicted_std_um**2 == pytest.approx(res.bias_std_um**2 + res.noise_std_um**2, rel=1e-9)
+    assert res.to_dict()["bias_std_um"] == res.bias_std_um
