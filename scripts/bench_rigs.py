@@ -426,7 +426,8 @@ FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
 
 def family_table_markdown(table: list[dict]) -> list[str]:
     """The per-family summary as a Markdown table."""
-    L = ["| " + " | ".join(h for _, h, _ in FAMILY_COLUMNS) + " |", "|" + "---|" * len(FAMILY_COLUMNS)]
+    L = ["<!-- table: families -->", "| " + " | ".join(h for _, h, _ in FAMILY_COLUMNS) + " |",
+         "|" + "---|" * len(FAMILY_COLUMNS)]
     for t in table:
         cells = []
         for key, _, fmt in FAMILY_COLUMNS:
@@ -461,9 +462,13 @@ def print_families(table: list[dict], results: list[dict]) -> None:
         print("  " + _fmt_fail(f))
 
 
-def families_markdown(table: list[dict], results: list[dict], header: str, wall_s: float) -> str:
-    """The family run as Markdown (``--family ... --markdown FILE``)."""
-    L = [header, "", "### Rig families (scripts/rig_families.py)", "",
+def families_markdown(table: list[dict], results: list[dict], header: str, wall_s: float,
+                      sets: list[dict] | None = None, experiment: str | Path = MAIN_JOB) -> str:
+    """The family run (and the main job over seed sets, when run) as Markdown (``--family ... --markdown FILE``)."""
+    L = [header, ""]
+    if sets:
+        L += markdown([], sets, 0, "", 0.0, experiment).split("\n")[2:-2] + [""]
+    L += ["### Rig families (scripts/rig_families.py)", "",
          f"Rigs passing = at every target true std <= {STD_BAR} x the oracle's AND |true error| <= {ERR_BAR_UM} µm; "
          f"calibration = true / predicted std in {list(CAL_BAR)}. Targets {list(TARGETS_UM)} µm in sequence. "
          f"Oracle: grid search {FAMILY_ORACLE} over the redundant set on the family's exact truth; checked against "
@@ -647,9 +652,15 @@ def main_families(args) -> int:
     header = (f"machine: {platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpu, Python "
               f"{platform.python_version()}, numpy {np.__version__}; families {list(fams)}, {args.rigs} rigs each "
               f"(seeds {args.seed}..{args.seed + args.rigs - 1}), sizes {list(sizes)}, methods {list(methods)}, "
-              f"targets {list(TARGETS_UM)} µm, jobs {args.jobs}")
+              f"targets {list(TARGETS_UM)} µm, {args.seed_sets} main-job seed sets, jobs {args.jobs}")
     print(header)
     t0 = time.perf_counter()
+    sets: list[dict] = []
+    if args.seed_sets:
+        ks = list(range(1, args.seed_sets + 1))
+        with ProcessPoolExecutor(max(args.jobs, 1)) as ex:
+            sets = list(ex.map(run_seed_set, ks, [args.experiment] * len(ks)))
+        print_seed_sets(sets)
     jobs = [(f, s) for f in fams for s in seeds]
     results: list[dict] = []
     if args.jobs > 1:
@@ -669,9 +680,10 @@ def main_families(args) -> int:
     wall = time.perf_counter() - t0
     print(f"wall time {wall:.0f} s")
     if args.markdown:
-        Path(args.markdown).write_text(families_markdown(table, results, header, wall))
+        Path(args.markdown).write_text(families_markdown(table, results, header, wall, sets, args.experiment))
     if args.json:
-        Path(args.json).write_text(json.dumps({"summary": table, "rigs": results}, indent=1, default=float))
+        Path(args.json).write_text(json.dumps({"summary": table, "rigs": results, "seed_sets": sets}, indent=1,
+                                              default=float))
     return 0
 
 
