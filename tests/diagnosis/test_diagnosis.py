@@ -178,4 +178,9 @@ def test_extended_eafm_uses_the_diagnosed_noise_and_controls_no_worse(tmp_path):
         assert r["true_std_um"] <= 1.25 * r["oracle_std_um"] and abs(r["true_error_um"]) <= 0.1
     assert main(["train", str(log), "--config", str(tmp_path / "diag" / "extended.yaml"), "-o",
                  str(tmp_path / "ext.npz"), "--quiet"]) == 0
-    assert FittedVHGPR.load(tmp_path / "ext.npz").g_feature_names == ("dq4",)
+    # the default (dictionary) noise model selects the diagnosed source, PZT 4's stick-slip, and no other
+    assert FittedVHGPR.load(tmp_path / "ext.npz").g_feature_names == ("dq4:sq",)
+    assert main(["train", str(log), "--config", str(tmp_path / "diag" / "extended.yaml"), "-o",
+                 str(tmp_path / "ext_phys.npz"), "--quiet", "--noise-model", "physical"]) == 0
+    # the physical noise model restricted to the diagnosed actuators
+    assert FittedVHGPR.load(tmp_path / "ext_phys.npz").g_feature_names == ("dq4",)
