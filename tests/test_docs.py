@@ -134,9 +134,11 @@ def test_bench_rigs_page_matches_the_code():
     got = tables(text)
     assert got["seed_sets"][0] == bench.seed_set_columns()
     assert [r[0] for r in got["seed_sets"][1:-1]] == [str(k) for k in range(1, len(got["seed_sets"]) - 1)]
-    assert got["rigs"][0] == [h for _, h, _ in bench.RIG_COLUMNS]
-    for row in got["rigs"][1:]:
-        assert row[1] in bench.METHODS, row
+    assert got["families"][0] == [h for _, h, _ in bench.FAMILY_COLUMNS]
+    fam_col = [h for _, h, _ in bench.FAMILY_COLUMNS].index("family")
+    meth_col = [h for _, h, _ in bench.FAMILY_COLUMNS].index("method")
+    for row in got["families"][1:]:
+        assert row[meth_col] in bench.METHODS and row[fam_col] in bench.rig_families.FAMILIES, row
     # the command the page names is the one reproduce.py runs
     assert " ".join(reproduce.BENCH_RIGS_ARGS) in text
 
