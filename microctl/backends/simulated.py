@@ -243,10 +243,13 @@ class SimulatedStage(StageBackend):
         """Monte Carlo mean and variance of the readings of moves with noise-free actual positions
         q_act (m, n_q) and steps dq (m, n_q).
 
-        With ``sensitivity`` (m, n_q), the first-order reading change of the same draws is a
-        control variate: its exact variance (sum_i J_i^2 var q_i) replaces its sample variance, so
-        the estimate's sampling error is that of the nonlinear part only (small where a ball rarely
-        changes contact). The antithetic pairs make the control variate's sample mean exactly 0."""
+        With ``sensitivity`` (m, n_q), the first-order reading change L of the same draws is a
+        control variate: the part of the sample variance that L explains, beta^2 var(L) with beta
+        the regression coefficient of the reading on L, is taken at L's exact variance
+        (sum_i J_i^2 var q_i) instead of its sample variance, so the sampling error is that of the
+        nonlinear part only where a ball rarely changes contact, and the plain sample variance
+        where the reading stops following L (a ball that lifts off). Never negative. The antithetic
+        pairs make the control variate's sample mean exactly 0."""
         n_q = q_act.shape[1]
         z = np.random.default_rng(TRUTH_SEED).standard_normal((TRUTH_DRAWS // 2, 2, n_q))
         z = np.concatenate([z, -z])  # antithetic pairs
@@ -265,7 +268,14 @@ class SimulatedStage(StageBackend):
                 J = sensitivity[sl]
                 lin = np.einsum("mkq,mq->mk", noise, J)
                 exact_lin = np.sum(J * J * self._actuator_std(dq[sl]) ** 2, axis=1)
-                vars_[sl] += exact_lin - lin.var(axis=1, ddof=1)
+                # regression-adjusted control variate: beta = cov(r, L) / var(L), so where a ball
+                # lifts off and the reading stops following L (beta -> 0) the plain sample variance
+                # remains; var_r - beta^2 var_L >= 0 (Cauchy-Schwarz), so the estimate never
+                # goes negative
+                var_l = lin.var(axis=1, ddof=1)
+                cov = np.einsum("mk,mk->m", r - r.mean(axis=1, keepdims=True), lin) / (TRUTH_DRAWS - 1)
+                beta = np.where(var_l > 0, cov / np.where(var_l > 0, var_l, 1.0), 0.0)
+                vars_[sl] += beta * beta * (exact_lin - var_l)
             vars_[sl] += self.settings.gauge_noise_std_um**2
         return means, vars_
 
