@@ -209,7 +209,8 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
                                  "oracle_q_um": o.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s})
                     stage.move(res.u)
                     prev = res.u
-            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
+            sel = (model.info.get("noise_selection") or {}).get("selected")
+            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "targets": rows})
     return out
 
 
@@ -298,7 +299,8 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                     rows.append(_score_target(stage, ctrl, oracle, base, target, stage.state, prev, seed * 10 + k))
                     prev = np.asarray(rows[-1]["u"])
                     stage.move(prev)
-            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "targets": rows})
+            sel = (model.info.get("noise_selection") or {}).get("selected")
+            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "targets": rows})
     return out
 
 

@@ -19,6 +19,8 @@ module represents each candidate as that linear quantity ``z_j = a_j . x + b_j``
 ``down``    z^2 (1 - tanh(z / e)) / 2             (only when z < 0)
 ``bump``    exp(-(z - mu)^2 / (2 h^2))            (a rough patch of a stroke)
 ``exp``     exp(z)                                (grows as z rises: a ball unloading)
+``step``    1 / (1 + exp(-(|z|_e - d) / w))       (a breakaway: repeatable below a step of d,
+                                                   a fixed-size slip beyond; |z|_e = sqrt(z^2 + w^2))
 
 Every shape is smooth (CasADi differentiates it exactly) and non-negative. Each feature is
 divided by a fixed ``scale`` (its mean over the training inputs) so the coefficients c_j are
@@ -40,7 +42,7 @@ from microctl.errors import ConfigError
 __all__ = ["SHAPES", "ShapedFeatures", "ShapeTransform"]
 
 #: Shape name -> number of parameters it reads from its row of ``params``.
-SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0}
+SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0, "step": 2}
 
 
 def _shape_np(kind: str, z: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -58,6 +60,8 @@ def _shape_np(kind: str, z: np.ndarray, p: np.ndarray) -> np.ndarray:
         return np.exp(-((z - p[0]) ** 2) / (2.0 * p[1] ** 2))
     if kind == "exp":
         return np.exp(np.minimum(z, 50.0))
+    if kind == "step":
+        return 1.0 / (1.0 + np.exp(-(np.sqrt(z * z + p[1] ** 2) - p[0]) / p[1]))
     raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
 
 
@@ -76,6 +80,8 @@ def _shape_ca(kind: str, z: ca.MX, p: np.ndarray) -> ca.MX:
         return ca.exp(-((z - float(p[0])) ** 2) / (2.0 * float(p[1]) ** 2))
     if kind == "exp":
         return ca.exp(ca.fmin(z, 50.0))
+    if kind == "step":
+        return 1.0 / (1.0 + ca.exp(-(ca.sqrt(z * z + float(p[1]) ** 2) - float(p[0])) / float(p[1])))
     raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
 
 

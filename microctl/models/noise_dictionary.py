@@ -9,7 +9,11 @@ dq_i = K_i u - q_i,prev):
 
 ``dq<i>:sq``       dq_i^2                      stick-slip whose std grows with the step
 ``dq<i>:abs``      |dq_i| (smoothed)           creep / settling whose variance grows with the step
-``dq<i>:sat``      dq_i^2 / (dq_i^2 + s^2)     stiction that saturates after a few µm (s = 2 µm)
+``dq<i>:sat``      dq_i^2 / (dq_i^2 + s^2)     stiction that saturates after a few µm (s = 2 µm;
+                                               ``sat@1`` and ``sat@4``: s = 1 and 4 µm, creep
+                                               whose random part saturates sooner or later)
+``dq<i>:step@d``   a smooth step in |dq_i| at d  a breakaway: small steps taken up elastically,
+                                               a slip of fixed size beyond d (d = 2, 4 µm)
 ``dq<i>:up``       dq_i^2 on extending moves   direction-dependent slip (one sign of the step)
 ``dq<i>:down``     dq_i^2 on retracting moves
 ``q<i>:bump@c``    a Gaussian bump in q_i      a rough patch of the stroke centred at c (5 centres
@@ -23,11 +27,18 @@ dq_i = K_i u - q_i,prev):
 Selection (:func:`select_features`) is forward and evidence-based with a multiple-testing
 discipline: on the residual of the mean correction, r ~ N(0, c_0 + sum_S c_j phi_j(x)) with
 c >= 0 is fitted by maximum likelihood; the candidate that raises the maximised log-likelihood
-most is added while its likelihood-ratio statistic is significant at family-wise level
-``alpha`` over the candidates still in play (one-sided chi-square, Bonferroni: the
-coefficient's null value 0 is on the boundary). On a stage whose scatter is the gauge alone,
-nothing is selected with probability >= 1 - alpha.
+most is added while it is significant at family-wise level ``alpha`` over the candidates still
+in play. The candidates are strongly correlated (five shapes of one actuator's step describe
+nearly the same thing), so a Bonferroni correction over their number would be far too strict;
+the family-wise p-value is instead the max-statistic (Westfall-Young) one: each candidate's
+profiled log-likelihood gain (:func:`_profile_gains`) is referred to the distribution of the
+*largest* gain over all candidates in play, simulated under the current fit (residuals drawn from
+N(0, v(x)) at the training inputs, :data:`NULL_DRAWS` draws, a fixed seed), which accounts for
+their correlation exactly. On a stage whose scatter is the gauge alone, nothing is selected
+with probability >= 1 - alpha (tested). The tilt source (below) keeps the conservative
+Bonferroni correction (its direction is not identified under the null).
 """
+
 
 from __future__ import annotations
 
@@ -44,10 +55,16 @@ from microctl.stage.physics import ball_heights, contact_model
 
 __all__ = ["candidate_features", "ball_load_map", "select_features", "Selection"]
 
+#: Residual draws under the current fit for the max-statistic p-values, and their seed; the grid
+#: of a candidate's share (times the mean current variance) its profiled gain is maximised over.
+NULL_DRAWS, NULL_SEED = 1000, 20_261_124
+PROFILE_RATIOS = np.concatenate([np.logspace(-2.5, 2.5, 26)])
 #: Stroke-patch centres per actuator range, and width as a fraction of the range.
 N_BUMPS, BUMP_WIDTH = 5, 0.1
 #: Smoothing of |dq| and of the direction switch, µm; stiction saturation step, µm.
 STEP_EPS_UM, SAT_UM = 0.2, 2.0
+#: The other saturation steps, and the breakaway steps with the breakaway's width, µm.
+SAT_MORE_UM, BREAKAWAY_UM, BREAKAWAY_WIDTH_UM = (1.0, 4.0), (2.0, 4.0), 0.5
 
 
 def ball_load_map(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +118,10 @@ def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
         add(step, 0.0, "sq", (0.0, 0.0), f"d{nm}:sq")
         add(step, 0.0, "abs", (STEP_EPS_UM, 0.0), f"d{nm}:abs")
         add(step, 0.0, "sat", (SAT_UM, 0.0), f"d{nm}:sat")
+        for s_um in SAT_MORE_UM:
+            add(step, 0.0, "sat", (s_um, 0.0), f"d{nm}:sat@{s_um:g}")
+        for d_um in BREAKAWAY_UM:
+            add(step, 0.0, "step", (d_um, BREAKAWAY_WIDTH_UM), f"d{nm}:step@{d_um:g}")
         add(step, 0.0, "up", (STEP_EPS_UM, 0.0), f"d{nm}:up")
         add(step, 0.0, "down", (STEP_EPS_UM, 0.0), f"d{nm}:down")
         span = max(float(hi[i] - lo[i]), 1e-9)
@@ -207,6 +228,64 @@ def _score(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
     return np.where(u > 0, u * u / np.maximum(info, 1e-300), 0.0)
 
 
+def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """Log-likelihood gain of each candidate entering the current variance, profiled.
+
+    The variance with candidate j is ``a (v + rho phi_j)``: the current fit's shape v (its
+    sources' proportions held) times a free scale a, plus the candidate at ratio rho >= 0. For a
+    fixed rho the best scale is closed-form, ``a = mean(r^2 / (v + rho phi_j))``, so the profile
+    log-likelihood over a grid of rho (:data:`PROFILE_RATIOS` times mean(v)) is a few matrix
+    products for every candidate and every residual vector at once.
+
+    Parameters
+    ----------
+    R2 : ndarray, shape (b, n)
+        Squared residuals (b residual vectors).
+    v : ndarray, shape (n,)
+        Current variance at the training inputs.
+    Phi : ndarray, shape (n, P)
+
+    Returns
+    -------
+    ndarray, shape (b, P)
+        max over rho of the profile log-likelihood minus its value at rho = 0 (>= 0).
+    """
+    n = len(v)
+    rhos = float(np.mean(v)) * PROFILE_RATIOS
+    base = -0.5 * n * np.log(np.mean(R2 / v, axis=1))  # rho = 0 (the constant terms cancel)
+    best = np.zeros((R2.shape[0], Phi.shape[1]))
+    for rho in rhos:
+        V = v[:, None] + rho * Phi  # (n, P)
+        a = (R2 @ (1.0 / V)) / n  # (b, P)
+        ll = -0.5 * (n * np.log(a) + np.sum(np.log(V / v[:, None]), axis=0))
+        best = np.maximum(best, ll - base[:, None])
+    return best
+
+
+def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """Family-wise p-value of each candidate (columns of Phi): the probability, under the current
+    fit, that the largest profiled gain (:func:`_profile_gains`) over all candidates reaches
+    the candidate's observed one (Westfall-Young max-statistic; :data:`NULL_DRAWS` residual
+    vectors drawn from N(0, v) at the training inputs).
+
+    Returns
+    -------
+    ndarray, shape (P,)
+        ``(1 + #{max* >= T_j}) / (1 + NULL_DRAWS)``.
+    """
+    obs = _profile_gains(r2[None, :], v, Phi)[0]
+    rng = np.random.default_rng(NULL_SEED)
+    n = len(v)
+    block = max(1, min(NULL_DRAWS, 500_000 // max(n, 1)))
+    maxima = []
+    for b in range(0, NULL_DRAWS, block):
+        z = rng.standard_normal((min(block, NULL_DRAWS - b), n))
+        maxima.append(_profile_gains(z * z * v, v, Phi).max(axis=1))
+    mx = np.sort(np.concatenate(maxima))
+    exceed = NULL_DRAWS - np.searchsorted(mx, obs * (1 - 1e-12), side="left")
+    return (1.0 + exceed) / (1.0 + NULL_DRAWS)
+
+
 def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt_inputs: np.ndarray | None = None,
                     alpha: float = 0.05, max_features: int = 6, refits: int = 4) -> Selection:
     """Forward selection of variance features (module docstring).
@@ -215,10 +294,12 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     all at once); the ``refits`` best are fitted by maximum likelihood. With ``tilt_inputs`` one
     more candidate is a source growing exponentially along a direction of those inputs that the
     fit chooses (:func:`_fit_tilt`; k + 1 parameters). The candidate with the smallest adjusted
-    p-value enters if that is below ``alpha``: a fixed feature's likelihood-ratio statistic is
-    referred to the boundary chi-square (chi2_0 + chi2_1)/2, Bonferroni over the candidates in
-    play; the tilt's to chi2 with k + 1 degrees of freedom. An entry also needs the BIC's gain
-    (half log n per parameter).
+    p-value enters if that is below ``alpha`` (ties: the larger log-likelihood gain): a fixed
+    feature's p-value is the max-statistic one over the candidates in play
+    (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's likelihood-ratio
+    statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over every candidate
+    in play. An entry also needs the BIC's gain (half log n per parameter) and a positive
+    likelihood gain.
 
     Parameters
     ----------
@@ -255,19 +336,23 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         if tilt is not None:
             v = v + c[-1] * np.exp(np.clip(tilt_inputs @ tilt, -50, 50))
         order = rest[np.argsort(-_score(r2, v, Phi[:, rest]))][:refits]
+        # max-statistic p over the dictionary's candidates in play, at level 0.8 alpha while the
+        # tilt is in play (weighted Bonferroni over the two families: the tilt's own p is
+        # Bonferroni over all m candidates, so it spends at most alpha / m <= 0.2 alpha)
+        p_rest = dict(zip(rest.tolist(), _max_stat_pvalues(r2, v, Phi[:, rest])
+                          * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
         options = []  # (adjusted p, gain, needed gain, what, c, w)
         for j in order:
             lj, cj = _fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
             g = lj - ll
-            options.append((0.5 * float(stats.chi2.sf(2 * g, 1)) * m if g > 0 else 1.0, g, 0.5 * math.log(n),
-                            int(j), cj, tilt))
+            options.append((p_rest[int(j)] if g > 0 else 1.0, g, 0.5 * math.log(n), int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
             lt, ct, w = _fit_tilt(r2, Phi[:, chosen], tilt_inputs)
             g = lt - ll
             k = tilt_inputs.shape[1]
             options.append((float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g,
                             0.5 * (k + 1) * math.log(n), "tilt", ct, w))
-        best = min(options, key=lambda o: o[0]) if options else None
+        best = min(options, key=lambda o: (o[0], -o[1])) if options else None
         if best is None or best[0] >= alpha or best[1] < best[2]:
             break
         if best[3] == "tilt":
