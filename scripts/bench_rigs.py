@@ -104,6 +104,8 @@ METHODS = {
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    # the default with the mean correction's posterior variance added to the objective (issue 18)
+    "epistemic": Method("epistemic", "covering", ResidualModelSettings(), ControllerSettings(epistemic=True)),
     # the default with the noise parameters' uncertainty propagated into the objective
     "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
                      ControllerSettings()),

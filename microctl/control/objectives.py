@@ -12,8 +12,9 @@ log-normal noise variance (:class:`NoiseVariance`); the summaries (``noise_quant
 ``noise_mean``, ``noise_median``) are the registered classes of
 :mod:`microctl.control.noise_summaries`.
 
-``epistemic=True`` adds f's posterior variance (the uncertainty of the mean correction) to
-``r_e``, i.e. the expected squared error of the pose about the target.
+``epistemic=True`` (the default) adds f's posterior variance (the uncertainty of the mean
+correction) to ``r_e``, i.e. the expected squared error of the pose about the target;
+``epistemic=False`` is the paper's objective.
 """
 
 from __future__ import annotations
@@ -88,12 +89,14 @@ class NoiseVariance:
     kappa : float
         Standard normal quantile of the summaries that use one (``noise_quantile``; 1.645: 95 %).
     epistemic : bool
-        Add f's posterior variance to r_e.
+        Add f's posterior variance to r_e (default: the expected squared error about the target
+        is f's variance plus the noise's, so the controller does not park where f is
+        extrapolated; issue 18).
     """
 
     r_e: str = R_E_SUMMARIES.setting("noise_quantile")
     kappa: float = setting(1.645, lo=0.0, hi=5.0)
-    epistemic: bool = setting(False)
+    epistemic: bool = setting(True)
 
     def __post_init__(self) -> None:
         validate_settings(self, "objective setting")

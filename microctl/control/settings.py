@@ -27,7 +27,8 @@ class ControllerSettings:
     kappa : float
         Standard normal quantile of ``noise_quantile`` (1.645: the 95 % quantile).
     epistemic : bool
-        Add the mean correction's posterior variance to r_e.
+        Add the mean correction's posterior variance to r_e (default true: the expected squared
+        error about the target is f's variance plus the noise variance).
     credible_level : float
         Probability above which the chosen pose counts as credibly quieter than the AFM
         baseline's (:func:`~microctl.control.baseline.compare_noise`).
