@@ -104,8 +104,9 @@ METHODS = {
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
-    # the default with the mean correction's posterior variance added to the objective (issue 18)
-    "epistemic": Method("epistemic", "covering", ResidualModelSettings(), ControllerSettings(epistemic=True)),
+    # the default without the mean correction's posterior variance in the objective (the
+    # previous release's objective; the default adds it since issue 18)
+    "noise_only": Method("noise_only", "covering", ResidualModelSettings(), ControllerSettings(epistemic=False)),
     # the default with the noise parameters' uncertainty propagated into the objective
     "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
                      ControllerSettings()),

@@ -34,6 +34,10 @@ from microctl.testing import fixed_hyperparameter_model
 ROOT = Path(__file__).resolve().parents[2]
 TABLE1 = ROOT / "configs/stage/table1.yaml"
 KAPPA = 1.645
+#: The paper's objective (noise only): these tests check the sequence mechanics against r_e
+#: derived here by hand (:func:`_r_e`); the default's f-variance term is checked by the
+#: pairwise test below and by tests/control/test_controller.py's first-order tests.
+NOISE_ONLY = ControllerSettings(epistemic=False)
 #: r_e of the default objective over exp(g_mean) for a model whose g has GP signal variance
 #: e^-12 (negligible, its variance is that bound) and no parameter variance (objectives.py)
 F_QUANTILE = math.exp(KAPPA * math.sqrt(math.exp(-12.0) + 1e-12))
@@ -149,7 +153,7 @@ def test_greedy_is_forced_into_a_large_move(afm, forcing):
         assert forcing.predict(s, u).t_mean[0] == pytest.approx(float(afm.t_of(u)), abs=1e-12)
     targets = [20.0, 40.0]
     q4_min = (40.0 - 0.909293 * 32.0) / 1.911920
-    greedy = OptimalController(forcing).solve_sequence(targets)
+    greedy = OptimalController(forcing, NOISE_ONLY).solve_sequence(targets)
     greedy_total = sum(_r_e(forcing, r.state, r.u) for r in greedy)
     lower = F_QUANTILE * (2 * C0 + B_DEAR * (q4_min - math.sqrt(2 * A_CHEAP / B_DEAR * (20 / 0.909293) ** 2)) ** 2)
     assert greedy_total >= lower  # the test would be vacuous if greedy were not forced
@@ -160,7 +164,7 @@ def test_greedy_is_forced_into_a_large_move(afm, forcing):
     U = np.linalg.lstsq(afm.K, Q.T, rcond=None)[0].T
     assert np.allclose(afm.t_of(U), targets, atol=1e-3)
     split = F_QUANTILE * sum(C0 + np.dot(FORCING_C, dq**2) for dq in np.diff(np.vstack([np.zeros(4), Q]), axis=0))
-    plan = SequenceController(forcing).plan(targets)
+    plan = SequenceController(forcing, NOISE_ONLY).plan(targets)
     assert plan.success
     _valid(afm, forcing, plan, afm.zero_state(), targets)
     total = sum(_r_e(forcing, r.state, r.u) for r in plan.steps)
@@ -194,7 +198,7 @@ def test_kkt_of_the_multistage_solution(afm, curved, which, targets, s0):
     range multipliers of the right sign."""
     eafm = curved if which == "curved" else EAFM(afm, wells_model(afm))
     s0 = np.asarray(s0, dtype=float)
-    plan = SequenceController(eafm).plan(targets, s0)
+    plan = SequenceController(eafm, NOISE_ONLY).plan(targets, s0)
     assert plan.success
     _valid(afm, eafm, plan, s0, targets)
     T, n_p = len(targets), afm.n_p
@@ -243,7 +247,7 @@ def test_one_target_equals_the_optimal_controller(afm, r_e):
     """T = 1 is the paper's eq. 4: the same command as OptimalController on a non-convex landscape,
     cold and warm-started."""
     eafm = EAFM(afm, wells_model(afm))
-    settings = ControllerSettings(r_e=r_e)
+    settings = ControllerSettings(r_e=r_e, epistemic=False)
     seq, opt = SequenceController(eafm, settings), OptimalController(eafm, settings)
     rng = np.random.default_rng(7)
     states = np.column_stack([rng.uniform(0, 30, 6), rng.uniform(0, 32, (6, afm.n_q))])
@@ -261,7 +265,7 @@ def test_receding_horizon_warm_start_is_the_optimum(afm, curved):
     with the plan's tail, cold, and the tail itself (the principle of optimality: the tail of an
     optimal plan is optimal for the tail problem) agree; so do warm and cold with a new target
     appended (the list shifted by one)."""
-    seq = SequenceController(curved)
+    seq = SequenceController(curved, NOISE_ONLY)
     targets = [6.0, 12.0, 18.0, 24.0]
     plan = seq.plan(targets)
     s1 = np.concatenate([[targets[0]], plan.steps[0].q])
@@ -285,7 +289,7 @@ def test_dp_finds_the_best_path_over_the_candidates(afm, curved, mode):
     poses (a coarse grid: 3 steps of ~10-20 candidates), each path's moves scored state by state
     with r_np (not the pairwise evaluation the DP uses): the best cumulative r_e and its path
     ("sum"), the smallest worst move ("max": exact; the tie-break by the cumulative one is not)."""
-    seq = SequenceController(curved, ControllerSettings(grid=5, sequence_objective=mode))
+    seq = SequenceController(curved, ControllerSettings(grid=5, sequence_objective=mode, epistemic=False))
     s0 = np.array([2.0, 1.0, 3.0, 2.0, 4.0])
     targets = np.array([8.0, 2.0, 15.0])
     cand, value_grid, _, _, back = seq._dp(s0, targets)
@@ -311,7 +315,7 @@ def test_dp_finds_the_best_path_over_the_candidates(afm, curved, mode):
 
 
 def test_unreachable_target_names_the_step(afm, curved):
-    seq = SequenceController(curved)
+    seq = SequenceController(curved, NOISE_ONLY)
     with pytest.raises(UnreachableTargetError, match=r"step 2 of 3: target 500\.0 µm is unreachable .*reaches \["):
         seq.plan([6.0, 500.0, 12.0])
     with pytest.raises(UnreachableTargetError, match=r"step 1 of 1"):
@@ -324,8 +328,8 @@ def test_worst_move_objective(afm, curved):
     the two plans differ (measured: the sum-optimal plan's moves cost 0.0088 and 0.0228 µm², the
     max-optimal one's 0.0159 and 0.0204), so a "max" that minimised the sum would fail."""
     targets = [10.0, 30.0]
-    p_sum = SequenceController(curved).plan(targets)
-    p_max = SequenceController(curved, ControllerSettings(sequence_objective="max")).plan(targets)
+    p_sum = SequenceController(curved, NOISE_ONLY).plan(targets)
+    p_max = SequenceController(curved, ControllerSettings(sequence_objective="max", epistemic=False)).plan(targets)
     assert p_sum.success and p_max.success and p_max.sequence_objective == "max"
     _valid(afm, curved, p_max, afm.zero_state(), targets)
     assert p_max.worst_r_e_um2 < 0.95 * p_sum.worst_r_e_um2
@@ -333,21 +337,21 @@ def test_worst_move_objective(afm, curved):
 
 
 def test_ipopt_failure_never_leaves_the_ranges(afm, curved):
-    seq = SequenceController(curved, ControllerSettings(max_iter=1))
+    seq = SequenceController(curved, ControllerSettings(max_iter=1, epistemic=False))
     plan = seq.plan([6.0, 12.0, 3.0])
     assert not plan.success and "fallback to seed" in plan.status
     _valid(afm, curved, plan, afm.zero_state(), [6.0, 12.0, 3.0])
 
 
 def test_one_nlp_per_horizon(afm, curved, nlpsol_calls):
-    seq = SequenceController(curved)
+    seq = SequenceController(curved, NOISE_ONLY)
     for targets in ([1.0, 2.0], [5.0, 3.0], [4.0, 8.0, 9.0], [2.0, 1.0]):
         seq.plan(targets)
     assert nlpsol_calls == ["eafm_sequence_2_ipopt", "eafm_sequence_3_ipopt"] and seq.n_builds == 2
 
 
 def test_bad_inputs(afm, curved):
-    seq = SequenceController(curved)
+    seq = SequenceController(curved, NOISE_ONLY)
     with pytest.raises(ConfigError, match="at least one target"):
         seq.plan([])
     with pytest.raises(ConfigError, match=r"targets\[1\] must be a finite number"):
@@ -391,12 +395,12 @@ def test_pairwise_noise_seeding_proxy(afm, monkeypatch):
     rng = np.random.default_rng(4)
     S = np.column_stack([rng.uniform(0, 30, 5), rng.uniform(0, 32, (5, afm.n_q))])
     U = afm.workspace.sample(6, rng)
-    obj = NoiseVariance()
+    obj = NoiseVariance(epistemic=False)
     np.testing.assert_allclose(obj.r_pairs(eafm, S, U, seeding=True),
                                np.vstack([obj.r_np(eafm, s, U, seeding=True) for s in S]), rtol=1e-10)
     assert not np.allclose(obj.r_pairs(eafm, S, U, seeding=True), obj.r_pairs(eafm, S, U), rtol=1e-3)
     epi = NoiseVariance(r_e="noise_mean", epistemic=True)
-    g = np.vstack([NoiseVariance(r_e="noise_mean").r_np(eafm, s, U, seeding=True) for s in S])
+    g = np.vstack([NoiseVariance(r_e="noise_mean", epistemic=False).r_np(eafm, s, U, seeding=True) for s in S])
     np.testing.assert_allclose(epi.r_pairs(eafm, S, U, seeding=True),
                                g + eafm.predict(S.mean(axis=0), U).f_var[None, :], rtol=1e-10)
 
