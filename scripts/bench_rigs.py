@@ -23,7 +23,11 @@ Methods (columns):
   (``hgp``: g ~ GP(mu0, K_g)), SE kernel only, r_e = noise_mean;
 - ``hgp``: today's pipeline with the paper's noise model (covering design, linear trend,
   r_e = noise_quantile), to show what the noise model alone changes;
-- ``default``: today's defaults (physical noise model).
+- ``physical``: the previous release's noise model (every actuator's stick-slip);
+- ``default``: today's defaults (the noise dictionary, selected by the data; f's variance in
+  the objective);
+- ``noise_only``: today's model with the previous objective (no f variance);
+- ``params``: the default with the noise parameters' uncertainty in the objective.
 
 Bars (issue 10): with 200 moves, on >= 90 % of rigs, at every target, true std <= 1.25 x
 the oracle's and |true error| <= 0.1 µm; true std / predicted std in [0.67, 1.5] on
