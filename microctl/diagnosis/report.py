@@ -220,6 +220,8 @@ def render_markdown(report: dict) -> str:
         L += ["", f"A structured residual is left that no vocabulary cause explains (`unexplained`, "
               f"p = {report['unexplained']['p_value']:.3g}); the causes above still pay alongside a flexible term "
               "(generic basis + GP) fitted to it."]
+        if report["unexplained"].get("depends_on"):
+            L += ["", report["unexplained"]["depends_on"]]
     L += ["", "| noise cause | parameters | ΔBIC | accepted |", "|---|---|---|---|"]
     for e in report["noise_causes"]:
         L.append(f"| {cause_label(e)} | {_fmt_params(e)} | {_num(e.get('delta_bic'), '.1f')} | "

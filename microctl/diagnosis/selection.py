@@ -156,7 +156,7 @@ def select_mean_causes(
         resid = data.t - current.pred
         if weights is not None:
             resid = resid * weights
-        structure = structure_f_test(resid, data, current.k, weights)
+        structure = structure_f_test(resid, data, current.k, weights, reading=current.pred)
         remaining = [s for s in specs if s.key not in excluded]
         if len(accepted) >= MAX_CAUSES or not remaining:
             steps.append(Step(current, {}, None, 1.0, structure, False))
