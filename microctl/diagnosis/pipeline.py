@@ -43,6 +43,7 @@ from microctl.diagnosis.selection import (
     select_mean_causes,
     withdraw,
 )
+from microctl.diagnosis.separate import MAX_SEPARATED, separating_design
 from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.causes import ActuatorFriction
 from microctl.stage.config import StageConfig
@@ -262,6 +263,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
 
     ext_cfg = _extend(config, sel, noise)
 
+    separation = _separation(stage, sel, noise.fit.std_um, seed)
     g, control = None, None
     if gain:
         g, control = _gain(config, ext_cfg, data, named, timing, holdout=holdout, folds=folds, seed=seed, gp=gp,
@@ -299,6 +301,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
                         "history_tests": findings["tests"],
                         "guard": None if named.guard is None else named.guard.to_dict()},
         "outliers": _outliers_section(op, all_data, afm, stage),
+        "separation": separation,
         "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
         "nuisance": _nuisance_section(sel),
         "corrections": ext_cfg.stage.corrections.to_dict(),
@@ -415,6 +418,21 @@ def _gain(config, ext_cfg, data, named, timing: dict, *, holdout, folds, seed, g
         control = control_comparison(config, ext_cfg, data, seed=seed)
         timing["control_s"] = time.perf_counter() - t0
     return g, control
+
+
+def _separation(stage, sel, sigma_um: float, seed: int) -> list[dict]:
+    """Per accepted cause with equivalents: the recommended ``collect`` run that separates it from
+    its nearest equivalents (:func:`~microctl.diagnosis.separate.separating_design`)."""
+    out = []
+    for spec in sel.accepted:
+        step = next((s for s in sel.steps if s.accepted and s.best == spec.key), None)
+        if step is None or not step.equivalent:
+            continue
+        near = sorted(step.equivalent, key=lambda k: step.fits[k].rss)[:MAX_SEPARATED]
+        for k in near:
+            out.append({"cause": spec.key, "against": k,
+                        **separating_design(stage, step.fits[spec.key], step.fits[k], sigma_um, seed=seed)})
+    return out
 
 
 def _noise_summary(sel, noise, data) -> dict:

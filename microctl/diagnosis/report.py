@@ -54,6 +54,9 @@ def add_identifiability(report: dict) -> None:
             "why": ("with one scalar gauge these causes predict the same readings within the noise "
                     "(same likelihood within 2Δℓ < 6)"),
             "separate_by": seps,
+            "carried_in_extended_yaml": cause_label(e),
+            "chosen": e.get("chosen"),
+            "recommended_runs": [r for r in report.get("separation", []) if r["cause"] == cause_label(e)],
         })
     report["identifiability"] = out
 
@@ -212,6 +215,13 @@ def render_markdown(report: dict) -> str:
     for item in report.get("identifiability", []):
         L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
               f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
+        ch = item.get("chosen") or {}
+        if ch:
+            L += ["", f"`extended.yaml` carries `{item['key']}`, chosen by {ch['by']}"
+                  + (f" (the lowest BIC was `{ch['lowest_bic']}`)" if ch["lowest_bic"] != item["key"] else "") + "."]
+        for run in item.get("recommended_runs", []):
+            if run.get("command"):
+                L += ["", f"To tell `{item['key']}` from `{run['against']}`: `{run['command']}` ({run['note']})."]
         for e in report["mean_causes"]:
             if e.get("accepted") and cause_label(e) == item["key"]:
                 for q in e["equivalent"]:

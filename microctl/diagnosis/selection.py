@@ -14,7 +14,9 @@ significant and no candidate's LR is).
 
 Equivalence: a candidate whose own fit is within ``EQUIV_LR`` of the accepted one's
 likelihood (2 Δℓ = n log(RSS_c/RSS_best) < 6: the two causes predict the same data within
-the noise) is listed in the accepted cause's ``equivalent`` and removed from later steps.
+the noise) is listed in the accepted cause's ``equivalent`` and removed from later steps. Among
+equivalents the one accepted (and written to extended.yaml) is the one the physics makes most
+plausible (:func:`~microctl.diagnosis.separate.choose_plausible`), not the lowest BIC.
 For the Table I stage with one gauge this groups ``tool_offset`` with ``contact_offset`` of
 every actuator (docs/diagnosis.md derives why and what measurement separates them).
 """
@@ -30,6 +32,7 @@ from scipy import stats
 from microctl.diagnosis.causes import CauseSpec, MeanFit, candidate_specs, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.residuals import Test, structure_f_test
+from microctl.diagnosis.separate import choose_plausible
 from microctl.stage.causes import Effects
 from microctl.stage.geometry import Stage
 
@@ -69,6 +72,10 @@ class Step:
     accepted : bool
     equivalent : tuple of str
         Keys equivalent to the best.
+    chosen : dict or None
+        With equivalents: how ``best`` was chosen among them
+        (:func:`~microctl.diagnosis.separate.choose_plausible`; ``best`` is then the most
+        plausible, not necessarily the lowest BIC).
     """
 
     current: MeanFit
@@ -78,6 +85,7 @@ class Step:
     structure: Test
     accepted: bool
     equivalent: tuple = ()
+    chosen: dict | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,7 +192,18 @@ def select_mean_causes(
             k for k, f in fits.items()
             if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR
         ) if ok else ()
-        steps.append(Step(current, fits, best_key, p, structure, ok, equiv))
+        chosen_info = None
+        if ok and equiv:
+            # the data cannot separate them: carry the one the physics makes most plausible
+            chosen, chosen_info = choose_plausible(best_key, equiv, fits, stage)
+            p_c = _lr_p(current, fits[chosen], len(fits))
+            if chosen != best_key and fits[chosen].bic < current.bic and p_c < alpha:
+                equiv = tuple(k for k in (best_key, *equiv) if k != chosen)
+                best_key, best, p = chosen, fits[chosen], p_c
+            else:
+                chosen_info = {**chosen_info, "by": "lowest BIC (also the most plausible, or the most plausible "
+                                                    "does not pay on its own)"}
+        steps.append(Step(current, fits, best_key, p, structure, ok, equiv, chosen_info))
         if not ok:
             stop = "residual at the noise level" if structure.p_value >= alpha else "nothing pays"
             break
@@ -219,6 +238,7 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
         out.append(cause_entry(spec, theta, se, delta_bic=float(step.fits[spec.key].bic - cur_bic),
                                p_value=float(step.p_value), rank_deficient=bool(final.rank_deficient),
                                equivalent=eq, accepted=True, step=steps.index(step) + 1,
+                               **({"chosen": step.chosen} if step.chosen else {}),
                                nuisance={k: float(v) for k, v in step.fits[spec.key].nuisance.items()}))
     # the other candidates of the first step, against the configured model, best first
     first = steps[0]

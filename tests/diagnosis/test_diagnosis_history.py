@@ -14,7 +14,12 @@ import pytest
 from conftest import CONFIGS
 
 from microctl.diagnosis.data import data_from_arrays
-from microctl.diagnosis.history import history_findings, history_tests, periodic_scan, reversals
+from microctl.diagnosis.history import (
+    history_findings,
+    history_tests,
+    periodic_scan,
+    reversals,
+)
 from microctl.diagnosis.pipeline import run_diagnosis
 from microctl.stage.config import load_stage_config
 
