@@ -178,6 +178,26 @@ def control_markdown(c: dict) -> list[str]:
     return L + [""]
 
 
+def _identifiability_markdown(report: dict) -> list[str]:
+    """report.md lines on each class of equivalent causes: members, the one carried, the runs that separate."""
+    L: list[str] = []
+    for item in report.get("identifiability", []):
+        L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
+              f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
+        ch = item.get("chosen") or {}
+        if ch:
+            L += ["", f"`extended.yaml` carries `{item['key']}`, chosen by {ch['by']}"
+                  + (f" (the lowest BIC was `{ch['lowest_bic']}`)" if ch["lowest_bic"] != item["key"] else "") + "."]
+        for run in item.get("recommended_runs", []):
+            if run.get("command"):
+                L += ["", f"To tell `{item['key']}` from `{run['against']}`: `{run['command']}` ({run['note']})."]
+        for e in report["mean_causes"]:
+            if e.get("accepted") and cause_label(e) == item["key"]:
+                for q in e["equivalent"]:
+                    L.append(f"  - {cause_label(q)}: {_fmt_params(q)}")
+    return L
+
+
 def render_markdown(report: dict) -> str:
     """report.md: the four questions in order, short tables, figure links."""
     from microctl.diagnosis.selection import DELTA_BIC
@@ -212,20 +232,7 @@ def render_markdown(report: dict) -> str:
     for e in report["mean_causes"]:
         if e.get("withdrawn"):
             L += ["", f"`{cause_label(e)}` was fitted but withdrawn: {e['withdrawn']}."]
-    for item in report.get("identifiability", []):
-        L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
-              f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
-        ch = item.get("chosen") or {}
-        if ch:
-            L += ["", f"`extended.yaml` carries `{item['key']}`, chosen by {ch['by']}"
-                  + (f" (the lowest BIC was `{ch['lowest_bic']}`)" if ch["lowest_bic"] != item["key"] else "") + "."]
-        for run in item.get("recommended_runs", []):
-            if run.get("command"):
-                L += ["", f"To tell `{item['key']}` from `{run['against']}`: `{run['command']}` ({run['note']})."]
-        for e in report["mean_causes"]:
-            if e.get("accepted") and cause_label(e) == item["key"]:
-                for q in e["equivalent"]:
-                    L.append(f"  - {cause_label(q)}: {_fmt_params(q)}")
+    L += _identifiability_markdown(report)
     if report["unexplained"]["significant"]:
         L += ["", f"A structured residual is left that no vocabulary cause explains (`unexplained`, "
               f"p = {report['unexplained']['p_value']:.3g}); the causes above still pay alongside a flexible term "

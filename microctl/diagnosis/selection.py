@@ -188,21 +188,10 @@ def select_mean_causes(
         best = fits[best_key]
         p = _lr_p(current, best, len(fits))
         ok = best.bic < current.bic and p < alpha
-        equiv = tuple(
-            k for k, f in fits.items()
-            if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR
-        ) if ok else ()
-        chosen_info = None
-        if ok and equiv:
-            # the data cannot separate them: carry the one the physics makes most plausible
-            chosen, chosen_info = choose_plausible(best_key, equiv, fits, stage)
-            p_c = _lr_p(current, fits[chosen], len(fits))
-            if chosen != best_key and fits[chosen].bic < current.bic and p_c < alpha:
-                equiv = tuple(k for k in (best_key, *equiv) if k != chosen)
-                best_key, best, p = chosen, fits[chosen], p_c
-            else:
-                chosen_info = {**chosen_info, "by": "lowest BIC (also the most plausible, or the most plausible "
-                                                    "does not pay on its own)"}
+        equiv, chosen_info = _equivalents(fits, best_key) if ok else (), None
+        if equiv:
+            best_key, equiv, p, chosen_info = _choose(stage, current, fits, best_key, equiv, p, alpha)
+            best = fits[best_key]
         steps.append(Step(current, fits, best_key, p, structure, ok, equiv, chosen_info))
         if not ok:
             stop = "residual at the noise level" if structure.p_value >= alpha else "nothing pays"
@@ -213,6 +202,27 @@ def select_mean_causes(
         current = best
     final = current
     return Selection(baseline, final, steps, accepted, _entries(final, steps, accepted), stop, tuple(specs))
+
+
+def _equivalents(fits: dict, best_key: str) -> tuple:
+    """Keys whose fit is within 2Δℓ < :data:`EQUIV_LR` of the best's (same data within the noise)."""
+    best = fits[best_key]
+    return tuple(k for k, f in fits.items()
+                 if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR)
+
+
+def _choose(stage, current: MeanFit, fits: dict, best_key: str, equiv: tuple, p: float,
+            alpha: float) -> tuple[str, tuple, float, dict]:
+    """The data cannot separate ``best_key`` from ``equiv``: accept the one the physics makes most
+    plausible (:func:`~microctl.diagnosis.separate.choose_plausible`) if it pays on its own.
+
+    Returns (accepted key, its equivalents, its LR p-value, the report's ``chosen``)."""
+    chosen, info = choose_plausible(best_key, equiv, fits, stage)
+    p_c = _lr_p(current, fits[chosen], len(fits))
+    if chosen != best_key and fits[chosen].bic < current.bic and p_c < alpha:
+        return chosen, tuple(k for k in (best_key, *equiv) if k != chosen), p_c, info
+    return best_key, equiv, p, {**info, "by": "lowest BIC (also the most plausible, or the most plausible "
+                                              "does not pay on its own)"}
 
 
 #: The one definition of ΔBIC in the report (mean and noise tables, causes.png).
