@@ -187,8 +187,9 @@ def periodic_scan(resid: np.ndarray, data: DiagnosisData, reading: np.ndarray, k
     Returns
     -------
     dict or None
-        ``{"basis", "statistic", "df", "p_value" (Bonferroni), "period_um", "amplitude_um",
-        "periods_tested"}`` of the best period; None when the reading spans too little.
+        ``{"basis", "statistic", "df", "p_value" (Bonferroni), "p_single", "period_um",
+        "amplitude_um" (in the units of ``resid``: µm when unweighted), "periods_tested"}`` of the
+        best period; None when the reading spans too little.
     """
     lam = periods_um(reading)
     if lam.size == 0:
