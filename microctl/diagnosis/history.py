@@ -60,21 +60,21 @@ def reversals(data: DiagnosisData) -> np.ndarray:
 PLAY_FRACTIONS = (1 / 32, 1 / 16, 1 / 8, 1 / 4)
 
 
-def play_deviations(data: DiagnosisData, fractions=PLAY_FRACTIONS) -> np.ndarray:
-    """Generic rate-independent memory: play operators run along each actuator's commands.
+def play_outputs(data: DiagnosisData, fractions=PLAY_FRACTIONS) -> tuple[np.ndarray, np.ndarray]:
+    """Play operators run along each actuator's commands: y_k = max(q_k − r, min(q_k + r, y_{k−1}))
+    (Krasnosel'skii & Pokrovskii; the building block of every Prandtl-Ishlinskii hysteresis).
 
-    The play operator of threshold r, y_k = max(x_k − r, min(x_k + r, y_{k−1})) (Krasnosel'skii &
-    Pokrovskii), is the building block of every Prandtl-Ishlinskii hysteresis; its deviation
-    from a pure backlash, y_k − q_k + r d_k, is zero after a move longer than 2r and grows
-    after a short reversal. Each row feeds q_prev then q (a row whose predecessor was left out
-    still starts from its true previous command); the zero state is approached from below.
+    Each row feeds q_prev then q (a row whose predecessor was left out still starts from its
+    true previous command); the zero state is approached from below (y = −r).
 
     Returns
     -------
-    ndarray, shape (n, n_q × len(fractions))
-        Column i + n_q j: actuator i, threshold ``fractions[j]`` × the spread of its commands.
+    offsets : ndarray, shape (n, m, n_q)
+        y − q per row, threshold ``fractions[j]`` × the spread of actuator i's commands.
+    r : ndarray, shape (m, n_q)
+        The thresholds, µm.
     """
-    q, qp, d = data.q, data.q_prev, data.direction
+    q, qp = data.q, data.q_prev
     n, n_q = q.shape
     r = np.outer(np.ptp(np.vstack([q, qp]), axis=0), fractions).T  # (m, n_q)
     y = -r.copy()
@@ -82,8 +82,63 @@ def play_deviations(data: DiagnosisData, fractions=PLAY_FRACTIONS) -> np.ndarray
     for k in range(n):
         for x in (qp[k], q[k]):
             y = np.maximum(x - r, np.minimum(x + r, y))
-        out[k] = y - q[k] + r * d[k]
-    return out.reshape(n, -1)
+        out[k] = y - q[k]
+    return out, r
+
+
+def play_deviations(data: DiagnosisData, fractions=PLAY_FRACTIONS) -> np.ndarray:
+    """Generic rate-independent memory: each play operator's deviation from a pure backlash,
+    y − q + r d (:func:`play_outputs`), zero after a move longer than 2r, growing after a short
+    reversal.
+
+    Returns
+    -------
+    ndarray, shape (n, n_q × len(fractions))
+        Column i + n_q j: actuator i, threshold ``fractions[j]`` × the spread of its commands.
+    """
+    off, r = play_outputs(data, fractions)
+    return (off + r[None] * data.direction[:, None, :]).reshape(data.n, -1)
+
+
+def hysteresis_estimate(resid: np.ndarray, data: DiagnosisData, sensitivity: np.ndarray) -> dict:
+    """A Prandtl-Ishlinskii loop fitted to a residual: what a hysteresis would have to be.
+
+    resid ≈ c + b·u + Σ_i J_i Σ_j w_ij (y_ij − q_i), w ≥ 0 (non-negative least squares on the
+    operators of :func:`play_outputs`, J_i = ∂reading/∂q_act,i); the major-loop half-width of
+    actuator i is h_i = Σ_j w_ij r_ij. A description of the leftover, not a vocabulary cause.
+
+    Parameters
+    ----------
+    resid : ndarray (n,)
+        Unweighted residual, µm.
+    data : DiagnosisData
+    sensitivity : ndarray (n, n_q)
+        J, reading per actuator µm.
+
+    Returns
+    -------
+    dict
+        ``{"shape", "half_width_um": {actuator: h}, "actuators" (those carrying the loop),
+        "rms_um" (of the fitted loop's readings), "note"}``.
+    """
+    from scipy.optimize import lsq_linear
+
+    off, r = play_outputs(data)
+    m, n_q = r.shape
+    X = (sensitivity[:, None, :] * off).reshape(data.n, -1)
+    B0 = np.column_stack([np.ones(data.n), _z(data.u)])
+    A = np.hstack([B0, X])
+    lo = np.r_[np.full(B0.shape[1], -np.inf), np.zeros(X.shape[1])]
+    sol = lsq_linear(A, resid, bounds=(lo, np.full(A.shape[1], np.inf)))
+    w = sol.x[B0.shape[1]:].reshape(m, n_q)
+    h = (w * r).sum(axis=0)
+    # the actuators that carry the loop: at least a quarter of the largest and 0.02 µm (below it a
+    # loop is a fraction of the gauge noise of a rig)
+    acts = [i + 1 for i in range(n_q) if h[i] >= max(0.25 * h.max(), 0.02)]
+    return {"shape": "rate-independent hysteresis (Prandtl-Ishlinskii loop, play operators)",
+            "half_width_um": {str(i + 1): float(h[i]) for i in range(n_q)}, "actuators": acts,
+            "rms_um": float(np.sqrt(np.mean((X @ sol.x[B0.shape[1]:]) ** 2))),
+            "note": "a description of the leftover (non-negative play-operator weights), not a vocabulary cause"}
 
 
 def history_blocks(data: DiagnosisData) -> dict[str, np.ndarray]:

@@ -21,7 +21,11 @@ from microctl.diagnosis.control import control_comparison
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
-from microctl.diagnosis.history import extra_basis, history_findings
+from microctl.diagnosis.history import (
+    extra_basis,
+    history_findings,
+    hysteresis_estimate,
+)
 from microctl.diagnosis.noise import NoiseSelection, select_noise
 from microctl.diagnosis.outliers import (
     RowTest,
@@ -259,6 +263,8 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     unexplained = bool(significant and left.significant)
     timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
     findings = history_findings(left.f_test.details.get("tests", []), a_each / 2)
+    if unexplained and findings["history"]:
+        findings = _with_loop(findings, data, sel)
     accepted_mean, mean_entries = _mean_causes(sel, left, unexplained, findings)
 
     ext_cfg = _extend(config, sel, noise)
@@ -298,7 +304,7 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
                         "depends_on": findings["depends_on"] if unexplained else None,
                         "history": bool(unexplained and findings["history"]),
                         "periodic": bool(unexplained and findings["periodic"]),
-                        "history_tests": findings["tests"],
+                        "history_tests": findings["tests"], "hysteresis": findings.get("hysteresis"),
                         "guard": None if named.guard is None else named.guard.to_dict()},
         "outliers": _outliers_section(op, all_data, afm, stage),
         "separation": separation,
@@ -418,6 +424,17 @@ def _gain(config, ext_cfg, data, named, timing: dict, *, holdout, folds, seed, g
         control = control_comparison(config, ext_cfg, data, seed=seed)
         timing["control_s"] = time.perf_counter() - t0
     return g, control
+
+
+def _with_loop(findings: dict, data, sel) -> dict:
+    """``findings`` with the hysteresis loop a history-dependent leftover would be
+    (:func:`~microctl.diagnosis.history.hysteresis_estimate`) and a sentence on it."""
+    est = hysteresis_estimate(data.t - sel.final.pred, data, _sensitivity(sel.final, data))
+    if not est["actuators"]:
+        return findings
+    hw = ", ".join(f"{est['half_width_um'][str(a)]:.2f} µm on actuator {a}" for a in est["actuators"])
+    return {**findings, "hysteresis": est,
+            "depends_on": findings["depends_on"] + f" A Prandtl-Ishlinskii loop fitted to it has a half-width of {hw}."}
 
 
 def _separation(stage, sel, sigma_um: float, seed: int) -> list[dict]:

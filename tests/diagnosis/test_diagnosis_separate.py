@@ -12,7 +12,12 @@ from microctl.diagnosis.causes import CauseSpec, fit_mean
 from microctl.diagnosis.data import data_from_arrays
 from microctl.diagnosis.pipeline import run_diagnosis
 from microctl.diagnosis.report import add_identifiability
-from microctl.diagnosis.separate import TARGET_NONCENTRALITY, plausibility, prior_scales, separating_design
+from microctl.diagnosis.separate import (
+    TARGET_NONCENTRALITY,
+    plausibility,
+    prior_scales,
+    separating_design,
+)
 from microctl.stage.causes import ActuatorGain, ContactLoss, ContactOffset, ToolOffset
 from microctl.stage.config import load_stage_config
 from microctl.util.io import to_jsonable
