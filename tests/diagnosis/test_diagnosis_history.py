@@ -144,6 +144,10 @@ def test_hysteresis_is_unexplained_with_its_history_and_names_nothing(cfg, geo, 
     assert loop["actuators"] == list(actuators)
     for a in actuators:
         assert loop["half_width_um"][str(a)] == pytest.approx(half_width, rel=0.25)
+    # and it buys a held-out gain: the cross-validated RMSE falls by at least 10 % (measured 34-79 %,
+    # to 0.057-0.063 µm against a gauge noise of 0.05 µm)
+    cv = loop["heldout_rmse_um"]
+    assert cv["with"] < 0.9 * cv["without"], cv
 
 
 @pytest.mark.slow
