@@ -269,7 +269,9 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
 
     ext_cfg = _extend(config, sel, noise)
 
+    t0 = time.perf_counter()
     separation = _separation(stage, sel, noise.fit.std_um, seed)
+    timing["separation_s"] = time.perf_counter() - t0
     g, control = None, None
     if gain:
         g, control = _gain(config, ext_cfg, data, named, timing, holdout=holdout, folds=folds, seed=seed, gp=gp,
