@@ -262,16 +262,12 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     p_left = left.p_value
     unexplained = bool(significant and left.significant)
     timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
-    findings = history_findings(left.f_test.details.get("tests", []), a_each / 2)
-    if unexplained and findings["history"]:
-        findings = _with_loop(findings, data, sel)
+    findings = _findings(left, unexplained, data, sel, a_each)
     accepted_mean, mean_entries = _mean_causes(sel, left, unexplained, findings)
 
     ext_cfg = _extend(config, sel, noise)
 
-    t0 = time.perf_counter()
-    separation = _separation(stage, sel, noise.fit.std_um, seed)
-    timing["separation_s"] = time.perf_counter() - t0
+    separation = _separation(stage, sel, noise.fit.std_um, seed, timing)
     g, control = None, None
     if gain:
         g, control = _gain(config, ext_cfg, data, named, timing, holdout=holdout, folds=folds, seed=seed, gp=gp,
@@ -428,6 +424,13 @@ def _gain(config, ext_cfg, data, named, timing: dict, *, holdout, folds, seed, g
     return g, control
 
 
+def _findings(left, unexplained: bool, data, sel, a_each: float) -> dict:
+    """What the leftover depends on (:func:`~microctl.diagnosis.history.history_findings`), with the
+    hysteresis loop it would be when the history is significant and ``unexplained`` is named."""
+    findings = history_findings(left.f_test.details.get("tests", []), a_each / 2)
+    return _with_loop(findings, data, sel) if unexplained and findings["history"] else findings
+
+
 def _with_loop(findings: dict, data, sel) -> dict:
     """``findings`` with the hysteresis loop a history-dependent leftover would be
     (:func:`~microctl.diagnosis.history.hysteresis_estimate`) and a sentence on it."""
@@ -441,9 +444,11 @@ def _with_loop(findings: dict, data, sel) -> dict:
                           f"{est['heldout_rmse_um']['with']:.3f} µm)."}
 
 
-def _separation(stage, sel, sigma_um: float, seed: int) -> list[dict]:
+def _separation(stage, sel, sigma_um: float, seed: int, timing: dict) -> list[dict]:
     """Per accepted cause with equivalents: the recommended ``collect`` run that separates it from
-    its nearest equivalents (:func:`~microctl.diagnosis.separate.separating_design`)."""
+    its nearest equivalents (:func:`~microctl.diagnosis.separate.separating_design`). Adds
+    ``separation_s`` to ``timing``."""
+    t0 = time.perf_counter()
     out = []
     for spec in sel.accepted:
         step = next((s for s in sel.steps if s.accepted and s.best == spec.key), None)
@@ -453,6 +458,7 @@ def _separation(stage, sel, sigma_um: float, seed: int) -> list[dict]:
         for k in near:
             out.append({"cause": spec.key, "against": k,
                         **separating_design(stage, step.fits[spec.key], step.fits[k], sigma_um, seed=seed)})
+    timing["separation_s"] = time.perf_counter() - t0
     return out
 
 
