@@ -53,7 +53,8 @@ import numpy as np
 import yaml
 
 #: Effects outside the vocabulary (the diagnosis must call them ``unexplained``).
-OFF_VOCABULARY = ("smooth_bump", "periodic", "thermal_drift", "direction_curvature")
+OFF_VOCABULARY = ("smooth_bump", "periodic", "thermal_drift", "direction_curvature", "hysteresis",
+                  "gauge_periodic")
 
 #: An actuator step this small (µm) is "held still": it keeps its last direction of approach.
 STILL_TOL_UM = 1e-9
@@ -114,7 +115,10 @@ class Truth:
     Defects (healthy values by default)
         ``gain`` (4,), ``contact_shift_mm`` (4, 2), ``tool_shift_mm`` (2,), ``scale``,
         ``quad_per_um``, ``gap_um`` (4,), ``lag_um`` (4,), ``drift_um_per_s``,
-        ``friction_per_um`` (4,), ``extra`` (an off-vocabulary term of (u, q, time, direction)).
+        ``friction_per_um`` (4,), ``extra`` (an off-vocabulary term of (u, q, time, direction)),
+        ``play_um``, ``play_weight`` (4, m): piezo hysteresis, a Prandtl-Ishlinskii sum of m play
+        operators per actuator (thresholds, weights; see :func:`play`), ``ripple`` (amplitude µm,
+        period µm, phase rad): a periodic gauge error A·sin(2π d/λ + φ) in the displacement d.
     Noise
         ``gauge_um``, ``driver_um``; ``move_time_s`` per move.
     """
@@ -133,6 +137,9 @@ class Truth:
     drift_um_per_s: float = 0.0
     friction_per_um: np.ndarray = field(default_factory=lambda: np.zeros(4))
     extra: Callable | None = None
+    play_um: np.ndarray | None = None
+    play_weight: np.ndarray | None = None
+    ripple: tuple = (0.0, 10.0, 0.0)
     gauge_um: float = 0.05
     driver_um: float = 0.01
     move_time_s: float = 1.0
@@ -278,8 +285,27 @@ def tool_height(truth: Truth, pose: np.ndarray) -> np.ndarray:
 
 
 def gauge(truth: Truth, d_um: np.ndarray) -> np.ndarray:
-    """Noise-free gauge transfer scale·d + quad·d²."""
-    return truth.scale * d_um + truth.quad_per_um * d_um * d_um
+    """Noise-free gauge transfer scale·d + quad·d² (+ the periodic interpolation error, if any)."""
+    amp, lam, phi = truth.ripple
+    return truth.scale * d_um + truth.quad_per_um * d_um * d_um + amp * np.sin(2 * np.pi * d_um / lam + phi)
+
+
+def play(state: np.ndarray, cmd: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The play (backlash) operator, written here from its definition: the output follows the
+    input with a dead band of half-width r, y = max(x − r, min(x + r, y_prev)) (Krasnosel'skii
+    & Pokrovskii; the building block of a Prandtl-Ishlinskii hysteresis model).
+
+    Parameters
+    ----------
+    state : ndarray (4, m)
+        The operators' outputs before the move.
+    cmd : ndarray (4,)
+        The command.
+    r : ndarray (4, m)
+        Thresholds, µm.
+    """
+    x = cmd[:, None]
+    return np.maximum(x - r, np.minimum(x + r, state))
 
 
 # ---- moves -----------------------------------------------------------------------------------
@@ -364,9 +390,19 @@ def run(truth: Truth, u: np.ndarray, rng: np.random.Generator) -> Run:
     direction = np.ones(n)  # the zero command is approached upwards
     q_prev_cmd = np.zeros(n)
 
+    hyst = truth.play_um is not None
+    # Prandtl-Ishlinskii: q_act = q + Σ_j w_j (p_j − q); the zero command approached from below
+    # leaves every play output at −r_j, a major-loop half-width Σ_j w_j r_j
+    p_state = -truth.play_um if hyst else None
+
     def actual(cmd, dirn, dq):
+        nonlocal p_state
         noise = truth.driver_um * rng.standard_normal(n) + truth.friction_per_um * np.abs(dq) * rng.standard_normal(n)
-        return cmd - truth.lag_um * dirn + noise
+        out = cmd - truth.lag_um * dirn + noise
+        if hyst:
+            p_state = play(p_state, cmd, truth.play_um)
+            out = out + np.sum(truth.play_weight * (p_state - cmd[:, None]), axis=1)
+        return out
 
     # the gauge is zeroed at the zero command: one noisy reading of the rest pose
     rest = platform_pose(truth, actual(np.zeros(n), direction, np.zeros(n))[None, :])
@@ -455,7 +491,13 @@ def plant_off_vocabulary(truth: Truth, shape: str, rng: np.random.Generator, n_m
     - ``periodic``: A·sin(2π u_j/λ + φ) in one random input j, 2-4 periods over its range;
     - ``thermal_drift``: A·(1 − exp(−time/τ)), τ ∈ U(0.1, 0.4) × the run's duration (warm-up);
     - ``direction_curvature``: A·dir_i·(q_i/range)² on one actuator i (a hysteresis whose
-      size grows with the stroke).
+      size grows with the stroke);
+    - ``hysteresis``: a Prandtl-Ishlinskii loop (4 play operators, thresholds R·j/4 with
+      R ∈ U(4, 10) µm, equal weights) of major-loop half-width h ∈ U(0.15, 0.3) µm on one random
+      actuator or (half the draws) on all four: the output depends on the direction *and the
+      length* of the moves, not on the pose alone;
+    - ``gauge_periodic``: a periodic gauge error A·sin(2π d/λ + φ) in the displacement d with
+      A ∈ U(0.15, 0.3) µm, λ ∈ U(8, 12) µm.
     """
     g = truth.geometry
     A = float(rng.uniform(0.3, 1.0)) * (1.0 if rng.random() < 0.5 else -1.0)
@@ -495,9 +537,35 @@ def plant_off_vocabulary(truth: Truth, shape: str, rng: np.random.Generator, n_m
             return A * dirs[:, i] * (q[:, i] / rng_i) ** 2
 
         info = {"amplitude_um": A, "actuator": i + 1}
+    elif shape in ("hysteresis", "gauge_periodic"):
+        return plant_history(truth, shape, rng)
     else:
         raise ValueError(f"unknown off-vocabulary shape {shape!r}; known: {', '.join(OFF_VOCABULARY)}")
     return replace(truth, extra=extra), {"shape": shape, **info}
+
+
+def plant_history(truth: Truth, shape: str, rng: np.random.Generator, *, half_width_um: float | None = None,
+                  actuators: tuple | None = None, amplitude_um: float | None = None,
+                  period_um: float | None = None) -> tuple[Truth, dict]:
+    """Plant a hysteresis loop or a periodic gauge error (the history-dependent shapes of
+    :func:`plant_off_vocabulary`); keywords fix what is otherwise drawn."""
+    n = truth.geometry.n_act
+    if shape == "hysteresis":
+        h = float(rng.uniform(0.15, 0.3)) if half_width_um is None else half_width_um
+        big = float(rng.uniform(4.0, 10.0))
+        if actuators is None:
+            actuators = tuple(range(1, n + 1)) if rng.random() < 0.5 else (int(rng.integers(1, n + 1)),)
+        m = 4
+        r = np.tile(big * np.arange(1, m + 1) / m, (n, 1))
+        w = np.zeros((n, m))
+        for a in actuators:
+            w[a - 1] = h / r[a - 1].sum()  # Σ_j w_j r_j = h
+        return replace(truth, play_um=r, play_weight=w), {"shape": shape, "half_width_um": h,
+                                                         "largest_threshold_um": big, "actuators": list(actuators)}
+    A = float(rng.uniform(0.15, 0.3)) if amplitude_um is None else amplitude_um
+    lam = float(rng.uniform(8.0, 12.0)) if period_um is None else period_um
+    phi = float(rng.uniform(0, 2 * np.pi))
+    return replace(truth, ripple=(A, lam, phi)), {"shape": shape, "amplitude_um": A, "period_um": lam}
 
 
 def corrupt_cells(run_: Run, rng: np.random.Generator, count: int) -> tuple[Run, list[tuple[int, str, float]]]:

@@ -41,6 +41,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from microctl.diagnosis.causes import MeanFit, fit_mean
 from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.history import extra_basis
 from microctl.diagnosis.residuals import (
     GPFit,
     Test,
@@ -90,7 +91,7 @@ def _ols_resid(X: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def leftover(resid: np.ndarray, data: DiagnosisData, k_fitted: int, weights: np.ndarray | None, *,
-             alpha: float, seed: int = 0) -> Leftover:
+             alpha: float, seed: int = 0, reading: np.ndarray | None = None) -> Leftover:
     """Test a (weighted) residual for structure F explains (:func:`structure_f_test`, :func:`gp_lr_test`).
 
     Parameters
@@ -106,8 +107,10 @@ def leftover(resid: np.ndarray, data: DiagnosisData, k_fitted: int, weights: np.
         Level of the combined test.
     seed : int
         Seeds the GP's subset (above :data:`~microctl.diagnosis.residuals.GP_MAX_POINTS` rows).
+    reading : ndarray (n,), optional
+        The model's predicted reading (the periodic scan of :func:`structure_f_test`).
     """
-    f = structure_f_test(resid, data, k_fitted, weights)
+    f = structure_f_test(resid, data, k_fitted, weights, reading=reading)
     gp_t, _ = gp_lr_test(resid, gp_inputs(data), seed=seed)
     p = float(min(1.0, 2 * min(f.p_value, gp_t.p_value)))
 
@@ -141,17 +144,20 @@ class Flexible:
     var: np.ndarray
 
     @classmethod
-    def fit(cls, data: DiagnosisData, fitted: np.ndarray, resid: np.ndarray, gp: GPFit | None) -> "Flexible":
+    def fit(cls, data: DiagnosisData, fitted: np.ndarray, resid: np.ndarray, gp: GPFit | None,
+            extra: np.ndarray | None = None) -> "Flexible":
         """Fit F to ``resid`` (unweighted, µm) on the rows ``fitted`` of ``data``; evaluate everywhere.
 
         The basis is built on the whole run (its span does not depend on the standardisation)
         and fitted by least squares on ``fitted``; with a GP (hyperparameters ``gp``, from
         :func:`leftover`) the basis residual is conditioned on the GP. Leave-one-out values for
         the fitted rows: the GP's closed form (Rasmussen & Williams eq. 5.12) with the basis
-        held, or the hat-matrix form e_k/(1 − h_kk) without a GP.
+        held, or the hat-matrix form e_k/(1 − h_kk) without a GP. ``extra`` (n, p): columns
+        added to the basis (:func:`~microctl.diagnosis.history.extra_basis`: the history or
+        periodic regressors whose leftover test is significant).
         """
         fitted = np.asarray(fitted, dtype=bool)
-        B = generic_basis(data)
+        B = generic_basis(data) if extra is None else np.hstack([generic_basis(data), extra])
         Bf = B[fitted]
         coef, *_ = np.linalg.lstsq(Bf, resid, rcond=None)
         values = B @ coef
@@ -272,7 +278,10 @@ def guard(stage, data: DiagnosisData, final: MeanFit, left: Leftover, *, weights
     if not final.specs:
         return GuardResult()
     w = np.ones(data.n) if weights is None else weights
-    B = generic_basis(data) * w[:, None]
+    # F with the history / periodic regressors whose leftover test is significant: a cause fitted to
+    # part of a hysteresis loop or a gauge ripple is withheld if F explains it as well
+    extra = extra_basis(data, left.f_test.details.get("tests", []), final.pred, alpha / 2)
+    B = np.hstack([generic_basis(data), extra]) * w[:, None]
     X_gp = gp_inputs(data)
     out = GuardResult()
     name = "GLS F-test alongside the flexible term (generic basis + GP)"

@@ -21,6 +21,11 @@ from microctl.diagnosis.control import control_comparison
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.flexible import Flexible, GuardResult, Leftover, guard, leftover
 from microctl.diagnosis.gain import GainResult, prediction_gain
+from microctl.diagnosis.history import (
+    extra_basis,
+    history_findings,
+    hysteresis_estimate,
+)
 from microctl.diagnosis.noise import NoiseSelection, select_noise
 from microctl.diagnosis.outliers import (
     RowTest,
@@ -42,6 +47,7 @@ from microctl.diagnosis.selection import (
     select_mean_causes,
     withdraw,
 )
+from microctl.diagnosis.separate import MAX_SEPARATED, separating_design
 from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.causes import ActuatorFriction
 from microctl.stage.config import StageConfig
@@ -118,6 +124,12 @@ class Named:
     guard: GuardResult | None
 
 
+def _leftover(sel, data, w0, weights, a_each, seed) -> Leftover:
+    """Structure left after ``sel``'s causes (the periodic scan on their predicted reading)."""
+    return leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed,
+                    reading=sel.final.pred)
+
+
 def _name(stage, data: DiagnosisData, a_each: float, seed: int, progress) -> Named:
     """Mean causes, noise causes, leftover structure and the guard, on ``data``."""
     sel = select_mean_causes(stage, data, alpha=a_each, progress=progress)
@@ -134,25 +146,27 @@ def _name(stage, data: DiagnosisData, a_each: float, seed: int, progress) -> Nam
         sel = withdraw(sel, drop, stage, data, weights=weights,
                        reason="does not pay once the other accepted causes are in the model")
     w0 = np.ones(data.n) if weights is None else weights
-    left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+    left = _leftover(sel, data, w0, weights, a_each, seed)
     grd = None
     if left.significant and sel.accepted:
         # structure is left: a cause must still pay alongside the flexible term, or it is withdrawn
         grd = guard(stage, data, sel.final, left, weights=weights, alpha=a_each)
         if grd.withdrawn:
             sel = withdraw(sel, grd.withdrawn, stage, data, weights=weights,
-                           reason="the flexible term (generic basis + GP) explains its contribution as well")
-            left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+                           reason="the flexible term (generic basis, the significant history or periodic regressors, GP) "
+                                  "explains its contribution as well")
+            left = _leftover(sel, data, w0, weights, a_each, seed)
     if sel.final.unphysical:
         # after a withdrawal the others lift a ball, which none of them may: they are not these causes
         sel = withdraw(sel, [sp.key for sp in sel.accepted], stage, data, weights=weights,
                        reason="without the withdrawn causes, these lift a ball off, which none of them may")
-        left = leftover((data.t - sel.final.pred) * w0, data, sel.final.k, weights, alpha=a_each, seed=seed)
+        left = _leftover(sel, data, w0, weights, a_each, seed)
     if left.significant:
         # the noise causes are fitted on what the mean model *and* the flexible term leave: structure
         # is not scatter
         r = data.t - sel.final.pred
-        r = r - Flexible.fit(data, np.ones(data.n, dtype=bool), r, left.gp if weights is None else None).values
+        extra = extra_basis(data, left.f_test.details.get("tests", []), sel.final.pred, a_each / 2)
+        r = r - Flexible.fit(data, np.ones(data.n, dtype=bool), r, left.gp if weights is None else None, extra).values
         noise = select_noise(r, _sensitivity(sel.final, data), data.dq, data.u, alpha=a_each)
     return Named(sel, noise, weights, left, grd)
 
@@ -167,7 +181,8 @@ def _test_rows(named: Named, data: DiagnosisData, keep: np.ndarray, a_each: floa
     smooth, var_f = np.zeros(data.n), np.zeros(data.n)
     if named.left.significant:
         gp = named.left.gp if named.weights is None else None  # a weighted GP is in other units: basis only
-        flex = Flexible.fit(data, keep, r[keep], gp)
+        extra = extra_basis(data, named.left.f_test.details.get("tests", []), pred.t + fit.zero_um, a_each / 2)
+        flex = Flexible.fit(data, keep, r[keep], gp, extra)
         smooth, var_f = flex.values, flex.var
     std = np.sqrt(named.noise.fit.variance(pred.sensitivity, data.dq) + var_f)
     test = row_test(r - smooth, std, keep, a_each)
@@ -247,10 +262,12 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
     p_left = left.p_value
     unexplained = bool(significant and left.significant)
     timing["show_s"] = time.perf_counter() - t_start - timing["name_s"]
-    accepted_mean, mean_entries = _mean_causes(sel, left, unexplained)
+    findings = _findings(left, unexplained, data, sel, a_each)
+    accepted_mean, mean_entries = _mean_causes(sel, left, unexplained, findings)
 
     ext_cfg = _extend(config, sel, noise)
 
+    separation = _separation(stage, sel, noise.fit.std_um, seed, timing)
     g, control = None, None
     if gain:
         g, control = _gain(config, ext_cfg, data, named, timing, holdout=holdout, folds=folds, seed=seed, gp=gp,
@@ -282,8 +299,13 @@ def _run(config, data, *, holdout, seed, alpha, gain, gp, folds, progress, set_a
         "noise_summary": _noise_summary(sel, noise, data),
         "selection": _selection_section(sel, weights),
         "unexplained": {"significant": unexplained, "p_value": p_left, "tests": left.tests(),
+                        "depends_on": findings["depends_on"] if unexplained else None,
+                        "history": bool(unexplained and findings["history"]),
+                        "periodic": bool(unexplained and findings["periodic"]),
+                        "history_tests": findings["tests"], "hysteresis": findings.get("hysteresis"),
                         "guard": None if named.guard is None else named.guard.to_dict()},
         "outliers": _outliers_section(op, all_data, afm, stage),
+        "separation": separation,
         "noise_tests": {"heteroscedasticity": noise.heteroscedasticity.to_dict(), "leftover": noise.leftover.to_dict()},
         "nuisance": _nuisance_section(sel),
         "corrections": ext_cfg.stage.corrections.to_dict(),
@@ -355,8 +377,9 @@ def _show(data, named, model_resid, alpha, seed) -> tuple[list, float, bool]:
     return tests0, p_disc, significant
 
 
-def _mean_causes(sel, left, unexplained: bool) -> tuple[list, list]:
-    """The accepted mean causes and the report's entries, with ``unexplained`` after the accepted ones."""
+def _mean_causes(sel, left, unexplained: bool, findings: dict) -> tuple[list, list]:
+    """The accepted mean causes and the report's entries, with ``unexplained`` after the accepted ones
+    (with ``depends_on``: the sentence of :func:`~microctl.diagnosis.history.history_findings`)."""
     mean_entries = list(sel.entries)
     accepted_mean = [s.cause for s in sel.accepted]
     if unexplained:
@@ -364,6 +387,7 @@ def _mean_causes(sel, left, unexplained: bool) -> tuple[list, list]:
         mean_entries.insert(len(sel.accepted), {
             "cause": "unexplained", "params": {}, "stderr": {}, "delta_bic": None, "p_value": left.p_value,
             "equivalent": [], "accepted": True, "tests": left.tests(),
+            "depends_on": findings["depends_on"], "history": findings["history"], "periodic": findings["periodic"],
         })
     return accepted_mean, mean_entries
 
@@ -398,6 +422,44 @@ def _gain(config, ext_cfg, data, named, timing: dict, *, holdout, folds, seed, g
         control = control_comparison(config, ext_cfg, data, seed=seed)
         timing["control_s"] = time.perf_counter() - t0
     return g, control
+
+
+def _findings(left, unexplained: bool, data, sel, a_each: float) -> dict:
+    """What the leftover depends on (:func:`~microctl.diagnosis.history.history_findings`), with the
+    hysteresis loop it would be when the history is significant and ``unexplained`` is named."""
+    findings = history_findings(left.f_test.details.get("tests", []), a_each / 2)
+    return _with_loop(findings, data, sel) if unexplained and findings["history"] else findings
+
+
+def _with_loop(findings: dict, data, sel) -> dict:
+    """``findings`` with the hysteresis loop a history-dependent leftover would be
+    (:func:`~microctl.diagnosis.history.hysteresis_estimate`) and a sentence on it."""
+    est = hysteresis_estimate(data.t - sel.final.pred, data, _sensitivity(sel.final, data))
+    if not est["actuators"]:
+        return findings
+    hw = ", ".join(f"{est['half_width_um'][str(a)]:.2f} µm on actuator {a}" for a in est["actuators"])
+    return {**findings, "hysteresis": est,
+            "depends_on": findings["depends_on"] + f" A Prandtl-Ishlinskii loop fitted to it has a half-width of {hw}"
+                          f" (held-out RMSE {est['heldout_rmse_um']['without']:.3f} → "
+                          f"{est['heldout_rmse_um']['with']:.3f} µm)."}
+
+
+def _separation(stage, sel, sigma_um: float, seed: int, timing: dict) -> list[dict]:
+    """Per accepted cause with equivalents: the recommended ``collect`` run that separates it from
+    its nearest equivalents (:func:`~microctl.diagnosis.separate.separating_design`). Adds
+    ``separation_s`` to ``timing``."""
+    t0 = time.perf_counter()
+    out = []
+    for spec in sel.accepted:
+        step = next((s for s in sel.steps if s.accepted and s.best == spec.key), None)
+        if step is None or not step.equivalent:
+            continue
+        near = sorted(step.equivalent, key=lambda k: step.fits[k].rss)[:MAX_SEPARATED]
+        for k in near:
+            out.append({"cause": spec.key, "against": k,
+                        **separating_design(stage, step.fits[spec.key], step.fits[k], sigma_um, seed=seed)})
+    timing["separation_s"] = time.perf_counter() - t0
+    return out
 
 
 def _noise_summary(sel, noise, data) -> dict:

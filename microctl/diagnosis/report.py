@@ -54,6 +54,9 @@ def add_identifiability(report: dict) -> None:
             "why": ("with one scalar gauge these causes predict the same readings within the noise "
                     "(same likelihood within 2Δℓ < 6)"),
             "separate_by": seps,
+            "carried_in_extended_yaml": cause_label(e),
+            "chosen": e.get("chosen"),
+            "recommended_runs": [r for r in report.get("separation", []) if r["cause"] == cause_label(e)],
         })
     report["identifiability"] = out
 
@@ -175,6 +178,26 @@ def control_markdown(c: dict) -> list[str]:
     return L + [""]
 
 
+def _identifiability_markdown(report: dict) -> list[str]:
+    """report.md lines on each class of equivalent causes: members, the one carried, the runs that separate."""
+    L: list[str] = []
+    for item in report.get("identifiability", []):
+        L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
+              f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
+        ch = item.get("chosen") or {}
+        if ch:
+            L += ["", f"`extended.yaml` carries `{item['key']}`, chosen by {ch['by']}"
+                  + (f" (the lowest BIC was `{ch['lowest_bic']}`)" if ch["lowest_bic"] != item["key"] else "") + "."]
+        for run in item.get("recommended_runs", []):
+            if run.get("command"):
+                L += ["", f"To tell `{item['key']}` from `{run['against']}`: `{run['command']}` ({run['note']})."]
+        for e in report["mean_causes"]:
+            if e.get("accepted") and cause_label(e) == item["key"]:
+                for q in e["equivalent"]:
+                    L.append(f"  - {cause_label(q)}: {_fmt_params(q)}")
+    return L
+
+
 def render_markdown(report: dict) -> str:
     """report.md: the four questions in order, short tables, figure links."""
     from microctl.diagnosis.selection import DELTA_BIC
@@ -209,17 +232,13 @@ def render_markdown(report: dict) -> str:
     for e in report["mean_causes"]:
         if e.get("withdrawn"):
             L += ["", f"`{cause_label(e)}` was fitted but withdrawn: {e['withdrawn']}."]
-    for item in report.get("identifiability", []):
-        L += ["", f"**Equivalent to the accepted `{item['key']}` ({_fmt_params(item)})** on this data: "
-              f"{', '.join(item['class'][1:])}. {item['why']}. Separate them with: " + "; ".join(item["separate_by"]) + "."]
-        for e in report["mean_causes"]:
-            if e.get("accepted") and cause_label(e) == item["key"]:
-                for q in e["equivalent"]:
-                    L.append(f"  - {cause_label(q)}: {_fmt_params(q)}")
+    L += _identifiability_markdown(report)
     if report["unexplained"]["significant"]:
         L += ["", f"A structured residual is left that no vocabulary cause explains (`unexplained`, "
               f"p = {report['unexplained']['p_value']:.3g}); the causes above still pay alongside a flexible term "
               "(generic basis + GP) fitted to it."]
+        if report["unexplained"].get("depends_on"):
+            L += ["", report["unexplained"]["depends_on"]]
     L += ["", "| noise cause | parameters | ΔBIC | accepted |", "|---|---|---|---|"]
     for e in report["noise_causes"]:
         L.append(f"| {cause_label(e)} | {_fmt_params(e)} | {_num(e.get('delta_bic'), '.1f')} | "

@@ -6,8 +6,10 @@ Tests (all on the residual r = t − t̂ of a fitted mean model, optionally weig
   about the vocabulary (:func:`generic_blocks`: the monomials of the standardised pose u up
   to degree 3, the last-move direction of every actuator (±1) and its products with u, and
   the time up to degree 3), each beyond a constant (the gauge zero, a nuisance in every
-  model): quadratic in u, cubic in u, directions, time, all of them (Bonferroni over the
-  tests). Under the null (the model is right, homoscedastic Gaussian noise) each
+  model): quadratic in u, cubic in u, directions, time, all of them; and the leftover tests
+  that look at history (:mod:`microctl.diagnosis.history`: the last step's direction × length,
+  reversals, the previous state, each beyond the linear pose and the directions) and at a
+  ripple along the predicted reading (Bonferroni over all the tests). Under the null (the model is right, homoscedastic Gaussian noise) each
   F = ((RSS₀−RSS₁)/p) / (RSS₁/(n−p−k)) ~ F(p, n−p−k), exact when only the constant was
   fitted (k = 1; more fitted mean parameters make it approximate).
 - :func:`gp_lr_test` — likelihood ratio of a homoscedastic GP (squared-exponential ARD on
@@ -33,6 +35,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize
 
 from microctl.diagnosis.data import DiagnosisData
+from microctl.diagnosis.history import history_tests, periodic_scan
 from microctl.gp.kernels import Kernel
 
 
@@ -133,7 +136,7 @@ def _ols_rss(B: np.ndarray, y: np.ndarray) -> tuple[float, int]:
 
 
 def structure_f_test(resid: np.ndarray, data: DiagnosisData, k_fitted: int = 0,
-                     weights: np.ndarray | None = None) -> Test:
+                     weights: np.ndarray | None = None, reading: np.ndarray | None = None) -> Test:
     """Nested F-tests of the residual against the generic bases of :data:`STRUCTURE_TESTS`.
 
     Each test compares a constant (the gauge zero, a nuisance of every model) with the
@@ -151,6 +154,10 @@ def structure_f_test(resid: np.ndarray, data: DiagnosisData, k_fitted: int = 0,
         Mean parameters already fitted (reduce the denominator's degrees of freedom).
     weights : ndarray (n,), optional
         1/std per row: the bases are weighted the same way (weighted least squares).
+    reading : ndarray (n,), optional
+        The model's predicted reading, µm: adds the periodic scan
+        (:func:`microctl.diagnosis.history.periodic_scan`). The move-history tests
+        (:func:`microctl.diagnosis.history.history_tests`) are always among the tests.
     """
     blocks = generic_blocks(data)
     w = 1.0 if weights is None else weights[:, None]
@@ -171,6 +178,11 @@ def structure_f_test(resid: np.ndarray, data: DiagnosisData, k_fitted: int = 0,
         parts.append({"basis": name, "statistic": float(F), "df": [float(p), float(df2)],
                       "p_value": float(stats.f.sf(F, p, df2)),
                       "explained_fraction": float(1.0 - rss1 / rss0) if rss0 > 0 else 0.0})
+    parts += history_tests(resid, data, k_fitted, weights)
+    if reading is not None:
+        scan = periodic_scan(resid, data, reading, k_fitted, weights)
+        if scan is not None:
+            parts.append(scan)
     if not parts:
         return Test("F-tests against generic bases", float("nan"), 1.0)
     best = min(parts, key=lambda t: t["p_value"])

@@ -14,7 +14,9 @@ significant and no candidate's LR is).
 
 Equivalence: a candidate whose own fit is within ``EQUIV_LR`` of the accepted one's
 likelihood (2 Δℓ = n log(RSS_c/RSS_best) < 6: the two causes predict the same data within
-the noise) is listed in the accepted cause's ``equivalent`` and removed from later steps.
+the noise) is listed in the accepted cause's ``equivalent`` and removed from later steps. Among
+equivalents the one accepted (and written to extended.yaml) is the one the physics makes most
+plausible (:func:`~microctl.diagnosis.separate.choose_plausible`), not the lowest BIC.
 For the Table I stage with one gauge this groups ``tool_offset`` with ``contact_offset`` of
 every actuator (docs/diagnosis.md derives why and what measurement separates them).
 """
@@ -30,6 +32,7 @@ from scipy import stats
 from microctl.diagnosis.causes import CauseSpec, MeanFit, candidate_specs, fit_mean
 from microctl.diagnosis.data import DiagnosisData
 from microctl.diagnosis.residuals import Test, structure_f_test
+from microctl.diagnosis.separate import choose_plausible
 from microctl.stage.causes import Effects
 from microctl.stage.geometry import Stage
 
@@ -69,6 +72,10 @@ class Step:
     accepted : bool
     equivalent : tuple of str
         Keys equivalent to the best.
+    chosen : dict or None
+        With equivalents: how ``best`` was chosen among them
+        (:func:`~microctl.diagnosis.separate.choose_plausible`; ``best`` is then the most
+        plausible, not necessarily the lowest BIC).
     """
 
     current: MeanFit
@@ -78,6 +85,7 @@ class Step:
     structure: Test
     accepted: bool
     equivalent: tuple = ()
+    chosen: dict | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +164,7 @@ def select_mean_causes(
         resid = data.t - current.pred
         if weights is not None:
             resid = resid * weights
-        structure = structure_f_test(resid, data, current.k, weights)
+        structure = structure_f_test(resid, data, current.k, weights, reading=current.pred)
         remaining = [s for s in specs if s.key not in excluded]
         if len(accepted) >= MAX_CAUSES or not remaining:
             steps.append(Step(current, {}, None, 1.0, structure, False))
@@ -180,11 +188,11 @@ def select_mean_causes(
         best = fits[best_key]
         p = _lr_p(current, best, len(fits))
         ok = best.bic < current.bic and p < alpha
-        equiv = tuple(
-            k for k, f in fits.items()
-            if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR
-        ) if ok else ()
-        steps.append(Step(current, fits, best_key, p, structure, ok, equiv))
+        equiv, chosen_info = _equivalents(fits, best_key) if ok else (), None
+        if equiv:
+            best_key, equiv, p, chosen_info = _choose(stage, current, fits, best_key, equiv, p, alpha)
+            best = fits[best_key]
+        steps.append(Step(current, fits, best_key, p, structure, ok, equiv, chosen_info))
         if not ok:
             stop = "residual at the noise level" if structure.p_value >= alpha else "nothing pays"
             break
@@ -194,6 +202,27 @@ def select_mean_causes(
         current = best
     final = current
     return Selection(baseline, final, steps, accepted, _entries(final, steps, accepted), stop, tuple(specs))
+
+
+def _equivalents(fits: dict, best_key: str) -> tuple:
+    """Keys whose fit is within 2Δℓ < :data:`EQUIV_LR` of the best's (same data within the noise)."""
+    best = fits[best_key]
+    return tuple(k for k, f in fits.items()
+                 if k != best_key and f.n * np.log(max(f.rss, 1e-300) / max(best.rss, 1e-300)) < EQUIV_LR)
+
+
+def _choose(stage, current: MeanFit, fits: dict, best_key: str, equiv: tuple, p: float,
+            alpha: float) -> tuple[str, tuple, float, dict]:
+    """The data cannot separate ``best_key`` from ``equiv``: accept the one the physics makes most
+    plausible (:func:`~microctl.diagnosis.separate.choose_plausible`) if it pays on its own.
+
+    Returns (accepted key, its equivalents, its LR p-value, the report's ``chosen``)."""
+    chosen, info = choose_plausible(best_key, equiv, fits, stage)
+    p_c = _lr_p(current, fits[chosen], len(fits))
+    if chosen != best_key and fits[chosen].bic < current.bic and p_c < alpha:
+        return chosen, tuple(k for k in (best_key, *equiv) if k != chosen), p_c, info
+    return best_key, equiv, p, {**info, "by": "lowest BIC (also the most plausible, or the most plausible "
+                                              "does not pay on its own)"}
 
 
 #: The one definition of ΔBIC in the report (mean and noise tables, causes.png).
@@ -219,6 +248,7 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
         out.append(cause_entry(spec, theta, se, delta_bic=float(step.fits[spec.key].bic - cur_bic),
                                p_value=float(step.p_value), rank_deficient=bool(final.rank_deficient),
                                equivalent=eq, accepted=True, step=steps.index(step) + 1,
+                               **({"chosen": step.chosen} if step.chosen else {}),
                                nuisance={k: float(v) for k, v in step.fits[spec.key].nuisance.items()}))
     # the other candidates of the first step, against the configured model, best first
     first = steps[0]

@@ -34,7 +34,6 @@ from microctl.stage.causes import (
     ToolOffset,
 )
 from microctl.stage.config import load_stage_config
-from microctl.stage.geometry import Physics
 from microctl.testing.plant import parameter_bar
 
 TABLE1 = CONFIGS / "stage" / "table1.yaml"
