@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from microctl.diagnosis.selection import cause_label
+from microctl.util.atomic import write_text_atomic
 from microctl.util.io import to_jsonable, write_json
 
 #: Extra measurement that tells apart causes a single scalar gauge cannot (docs/diagnosis.md).
@@ -264,8 +265,8 @@ def write_outputs(diagnosis, out_dir: str | Path, *, figures: bool = True) -> di
     report = to_jsonable(diagnosis.report)
     add_identifiability(report)
     report["figures"] = write_figures(diagnosis, out) if figures else {"files": [], "skipped": "not requested"}
-    (out / "extended.yaml").write_text(diagnosis.extended_config.dump_yaml())
+    write_text_atomic(out / "extended.yaml", diagnosis.extended_config.dump_yaml())
     report["extended_config"] = str(out / "extended.yaml")
     write_json(out / "report.json", report)
-    (out / "report.md").write_text(render_markdown(report))
+    write_text_atomic(out / "report.md", render_markdown(report))
     return report

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import microctl.experiments.controllers as registry
+from microctl.util.atomic import save_figure
 
 FIG5, FIG6 = "fig5_absolute.png", "fig6_incremental.png"
 
@@ -178,7 +179,7 @@ def write_figures(out: Path, results: dict, title: str = "") -> list[str]:
         if results.get(key) is None:
             continue
         fig = make(results[key], title)
-        fig.savefig(Path(out) / name, dpi=110)
+        save_figure(fig, Path(out) / name, dpi=110)
         plt.close(fig)
         names.append(name)
     return names

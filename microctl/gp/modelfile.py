@@ -65,7 +65,9 @@ def write_model(model: Any, path: str | Path) -> None:
             arrays[name] = np.asarray(v, dtype=np.float64)
     path = Path(path)
     try:
-        with path.open("wb") as fh:
+        from microctl.util.atomic import atomic_write
+
+        with atomic_write(path, "wb") as fh:
             np.savez(fh, **arrays)
     except OSError as exc:
         raise DataError(f"{path}: cannot write the model file: {exc.strerror or exc}") from None

@@ -24,6 +24,7 @@ from microctl.cli.commands._common import (
     int_at_least,
 )
 from microctl.errors import DataError, MicroctlError
+from microctl.util.atomic import write_text_atomic
 from microctl.util.progress import Progress
 from microctl.util.tabular import read_table
 
@@ -116,7 +117,7 @@ def _predict(args: argparse.Namespace) -> int:
     pred = model.predict(X)
     text = "mean,var\n" + "".join(f"{float(m)!r},{float(v)!r}\n" for m, v in zip(pred.y_mean, pred.y_var))
     try:
-        args.out.write_text(text)
+        write_text_atomic(args.out, text)
     except OSError as exc:  # the folder was checked: this is the machine (full disk, I/O error), exit 1
         raise MicroctlError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
     return 0

@@ -1,0 +1,72 @@
+"""A newcomer's first hour and a lab's bad day (issue 22): outputs, hints, streams, bad inputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from microctl.cli import main
+from microctl.measurement.log import read_log
+from microctl.stage.config import load_stage_config
+
+ROOT = Path(__file__).resolve().parents[2]
+TABLE1 = ROOT / "configs/stage/table1.yaml"
+SIM = ROOT / "configs/stage/sim_paper.yaml"
+
+
+def _err_line(capsys, rc, want_rc=2, contains=()):
+    cap = capsys.readouterr()
+    assert rc == want_rc, cap.err
+    assert cap.err.count("\n") == 1 and "Traceback" not in cap.err, cap.err
+    for text in contains:
+        assert text in cap.err, cap.err
+    return cap.err
+
+
+# ---- item 7: collect -o never overwrites a log silently ----------------------------------------
+
+def test_collect_refuses_an_existing_log_without_force_or_append(tmp_path, capsys):
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"]) == 0
+    before = log.read_bytes()
+    rc = main(["collect", "--config", str(TABLE1), "-n", "4", "-o", str(log), "--quiet"])
+    _err_line(capsys, rc, contains=("the file exists; refusing to overwrite it", "--force", "--append"))
+    assert log.read_bytes() == before
+
+
+def test_collect_force_replaces_and_append_continues(tmp_path, capsys):
+    stage = load_stage_config(TABLE1).stage
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"]) == 0
+    assert main(["collect", "--config", str(TABLE1), "-n", "4", "-o", str(log), "--force", "--quiet"]) == 0
+    assert len(read_log(log, stage)) == 4
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == ["log.csv"]
+    assert main(["collect", "--config", str(TABLE1), "-n", "2", "--seed", "5", "-o", str(log), "--append",
+                 "--quiet"]) == 0
+    got = read_log(log, stage)
+    assert got.seq.tolist() == [0, 1, 2, 3, 4, 5]
+    assert all(b >= a for a, b in zip(got.time_s, got.time_s[1:]))
+    rc = main(["collect", "--config", str(TABLE1), "-n", "2", "-o", str(tmp_path / "none.csv"), "--append"])
+    _err_line(capsys, rc, contains=("--append needs an existing log",))
+
+
+def test_collect_append_refuses_another_header(tmp_path, capsys):
+    log = tmp_path / "log.csv"
+    log.write_text("a,b\n1,2\n")
+    rc = main(["collect", "--config", str(TABLE1), "-n", "2", "-o", str(log), "--append", "--quiet"])
+    _err_line(capsys, rc, contains=(f"{log}: cannot append: its header is 'a,b'",))
+    assert log.read_text() == "a,b\n1,2\n"
+
+
+# ---- item 15: two writers of one log ------------------------------------------------------------
+
+def test_collect_refuses_a_log_another_process_is_writing(tmp_path, capsys):
+    from microctl.util.atomic import output_lock
+
+    log = tmp_path / "log.csv"
+    with output_lock(log):  # as a running collect holds it
+        rc = main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"])
+    _err_line(capsys, rc, contains=("another microctl process is writing this file",))
+    assert not log.exists()
+    assert main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"]) == 0
