@@ -22,6 +22,7 @@ import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
 from microctl.models.training import ResidualModelSettings
 from microctl.stage.config import StageConfig, load_stage_config, load_yaml
+from microctl.util.packaged import missing_hint, resolve_config
 from microctl.util.fields import (
     FieldReader,
     read_settings,
@@ -422,7 +423,10 @@ def load_experiment_config(path: str | Path) -> ExperimentConfig:
     ConfigError
         Naming the file and the field path.
     """
-    path = Path(path)
+    given = path
+    path = resolve_config(path, "experiments")
+    if not path.exists():
+        raise ConfigError(f"{given}: cannot read: No such file or directory{missing_hint('experiments')}")
     data = load_yaml(path)
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: expected a YAML mapping with at least 'stage', got {type(data).__name__}")

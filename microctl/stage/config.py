@@ -37,6 +37,7 @@ from microctl.stage.serial_config import (  # noqa: F401  (the serial section's 
     parse_serial,
 )
 from microctl.util.fields import FieldReader
+from microctl.util.packaged import missing_hint, resolve_config
 
 #: Largest condition number accepted for the contact map H R^T J (eq. 10) and the
 #: inverse-kinematics matrix K; beyond it the pose is not determined by the actuators.
@@ -449,6 +450,8 @@ def load_yaml(path: str | Path) -> Any:
     mapping, nesting too deep to read.
     """
     path = Path(path)
+    if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or a device would block or never end
+        raise ConfigError(f"{path}: is not a regular file (a FIFO, socket or device); give a YAML file")
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -479,7 +482,8 @@ def load_stage_config(path: str | Path) -> StageConfig:
     Parameters
     ----------
     path : str or Path
-        The file, e.g. ``configs/stage/table1.yaml``.
+        The file, e.g. ``configs/stage/table1.yaml``, or the short name of a packaged stage
+        config (``table1``; :func:`microctl.util.packaged.resolve_config`).
 
     Returns
     -------
@@ -490,5 +494,8 @@ def load_stage_config(path: str | Path) -> StageConfig:
     ConfigError
         Naming the file and the field path.
     """
-    return parse_stage_config(load_yaml(path), source=str(path))
+    resolved = resolve_config(path, "stage")
+    if not resolved.exists():
+        raise ConfigError(f"{path}: cannot read: No such file or directory{missing_hint('stage')}")
+    return parse_stage_config(load_yaml(resolved), source=str(path))
 
