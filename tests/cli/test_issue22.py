@@ -70,3 +70,30 @@ def test_collect_refuses_a_log_another_process_is_writing(tmp_path, capsys):
     _err_line(capsys, rc, contains=("another microctl process is writing this file",))
     assert not log.exists()
     assert main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"]) == 0
+
+
+# ---- item 8: results on stdout, progress and notes on stderr -----------------------------------
+
+def test_train_and_collect_results_on_stdout(tmp_path, capsys, planted_log, table1_path):
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(TABLE1), "-n", "3", "-o", str(log), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert "collect: 3 moves on the simulated backend written to" in cap.out and cap.err == ""
+    rc = main(["train", str(planted_log), "--config", str(table1_path), "-o", str(tmp_path / "m.npz"),
+               "--restarts", "1", "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "model for stage" in cap.out and "noise model" in cap.out and cap.err == ""
+
+
+# ---- item 9: emulate on Ctrl-C ------------------------------------------------------------------
+
+def test_emulate_ctrl_c_exits_130_with_a_message(capsys, monkeypatch):
+    import microctl.cli.commands.emulate as emulate_cmd
+
+    def interrupt(_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(emulate_cmd.time, "sleep", interrupt)
+    rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "0,0,0", "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 130 and cap.err.strip().splitlines()[-1] == "microctl: interrupted", cap.err

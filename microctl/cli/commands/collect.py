@@ -75,6 +75,5 @@ def _run(args: argparse.Namespace) -> int:
                 if not args.quiet:
                     print(f"collect: {note}", file=sys.stderr)
             n = run_collect(backend, moves, args.out, quiet=args.quiet, mode=mode)
-    if not args.quiet:
-        print(f"collect: {n} moves on the {config.backend.kind} backend written to {args.out}", file=sys.stderr)
+    print(f"collect: {n} moves on the {config.backend.kind} backend written to {args.out}")  # the result: stdout
     return 0

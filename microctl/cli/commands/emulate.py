@@ -69,8 +69,6 @@ def _run(args: argparse.Namespace, max_seconds: float | None = None) -> int:
         t0 = time.monotonic()
         while max_seconds is None or time.monotonic() - t0 < max_seconds:
             time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
-    finally:
+    finally:  # Ctrl-C: the ports are closed, then main() says "microctl: interrupted", exit 130
         emu.stop()
     return 0

@@ -72,17 +72,16 @@ def _run(args: argparse.Namespace) -> int:
         print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
     model = train_residual_model(data, afm, settings)
     model.save(args.out)
-    if not args.quiet:
-        print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
-              f"model for stage '{config.stage.name}' written to {args.out}", file=sys.stderr)
-        print(f"train: {describe_noise(noise_summary(model, afm))}", file=sys.stderr)
-        sel = model.info.get("se_selection")
-        if sel is not None:
-            print(f"train: mean correction: affine trend in u"
-                  + (" plus an SE part" if sel["kept_se"] else "")
-                  + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
-                  f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})",
-                  file=sys.stderr)
+    # the result on stdout (progress and notes go to stderr): shown also with --quiet
+    print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
+          f"model for stage '{config.stage.name}' written to {args.out}")
+    print(f"train: {describe_noise(noise_summary(model, afm))}")
+    sel = model.info.get("se_selection")
+    if sel is not None:
+        print("train: mean correction: affine trend in u"
+              + (" plus an SE part" if sel["kept_se"] else "")
+              + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
+              f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})")
     return 0
 
 
