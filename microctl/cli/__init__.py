@@ -63,17 +63,47 @@ def _one_line(exc: BaseException) -> str:
     return str(exc).replace("\r", "\\r").replace("\n", "\\n")
 
 
+#: SIGINTs received during the current :func:`main` (a Ctrl-C a library swallowed, or one that
+#: surfaced as another exception, e.g. ``ImportError: initialization failed`` from a compiled
+#: module being loaded, still ends the command with 130).
+_SIGINTS: list = []
+
+
+def _on_sigint(signum, frame) -> None:  # noqa: ARG001 - signal handler API
+    _SIGINTS.append(signum)
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
+    import signal
+
+    _SIGINTS.clear()
     try:
-        return _main(argv)
+        previous = signal.signal(signal.SIGINT, _on_sigint)
+    except ValueError:  # not the main thread (e.g. a test runner's worker)
+        previous = None
+    try:
+        rc = _main(argv)
     except KeyboardInterrupt:  # in a command, or while the command modules are still being imported
+        rc = 130
+    except BaseException:
+        if not _SIGINTS:
+            raise
+        rc = 130  # the interrupt surfaced as another exception (an import failing half-way)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if _SIGINTS or rc == 130:
         print("microctl: interrupted", file=sys.stderr)
         return 130
+    return rc
 
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
+    if _SIGINTS:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
+        raise KeyboardInterrupt
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)

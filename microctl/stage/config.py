@@ -442,12 +442,29 @@ _StrictLoader.add_implicit_resolver(
 )
 
 
+#: Most values (scalars, lists, mappings) a YAML document may expand to through its aliases.
+MAX_YAML_VALUES = 1_000_000
+
+
+def _expanded_size(obj: Any, memo: dict) -> int:
+    """How many values ``obj`` holds with every alias expanded (shared objects counted per use)."""
+    if not isinstance(obj, (list, dict)):
+        return 1
+    key = id(obj)
+    if key not in memo:
+        memo[key] = 0  # a cycle (a recursive alias) counts once
+        children = obj.values() if isinstance(obj, dict) else obj
+        memo[key] = 1 + sum(_expanded_size(c, memo) for c in children)
+    return memo[key]
+
+
 def load_yaml(path: str | Path) -> Any:
     """Read a UTF-8 YAML file (a leading BOM is fine), turning every problem into :class:`ConfigError`.
 
     Refused, each with the file and, where it applies, the line and column: an unreadable
-    file or a directory, bytes that are not UTF-8, invalid YAML, a key given twice in one
-    mapping, nesting too deep to read.
+    file or a directory, a FIFO or device, bytes that are not UTF-8, invalid YAML, a key given
+    twice in one mapping, nesting too deep to read, aliases that expand to more than
+    :data:`MAX_YAML_VALUES` values.
     """
     path = Path(path)
     if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or a device would block or never end
@@ -466,7 +483,12 @@ def load_yaml(path: str | Path) -> Any:
             "decoded; save the file as UTF-8"
         ) from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        doc = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        size = _expanded_size(doc, {})
+        if size > MAX_YAML_VALUES:
+            raise ConfigError(f"{path}: the YAML expands to {size:.3g} values through its aliases (*name); at most "
+                              f"{MAX_YAML_VALUES} are read (an alias bomb?); write the values out")
+        return doc
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""

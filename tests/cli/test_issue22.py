@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -97,3 +98,74 @@ def test_emulate_ctrl_c_exits_130_with_a_message(capsys, monkeypatch):
     rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "0,0,0", "--quiet"])
     cap = capsys.readouterr()
     assert rc == 130 and cap.err.strip().splitlines()[-1] == "microctl: interrupted", cap.err
+
+
+# ---- item 18: no tracebacks ---------------------------------------------------------------------
+
+def test_diagnose_on_a_log_in_other_units_is_refused(tmp_path, capsys):
+    import csv
+
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(SIM), "-n", "45", "-o", str(log), "--quiet"]) == 0
+    rows = list(csv.reader(log.open()))
+    col = rows[0].index("t")
+    for r in rows[1:]:
+        r[col] = repr(float(r[col]) * 1000)  # t in nm
+    with log.open("w") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+    capsys.readouterr()
+    rc = main(["diagnose", str(log), "--config", str(SIM), "--out", str(tmp_path / "d"), "--quiet"])
+    _err_line(capsys, rc, contains=(f"{log}: ", "rows are implausible for the stage", "in other units"))
+
+
+def test_yaml_alias_bomb_is_refused_quickly(tmp_path, capsys):
+    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    prev = "a"
+    for name in "bcdefghi":
+        lines.append(f"{name}: &{name} [" + ",".join([f"*{prev}"] * 9) + "]")
+        prev = name
+    lines += ["stage:", "  name: *i"]
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("\n".join(lines) + "\n")
+    rc = main(["stage", "show", "--config", str(bomb)])
+    _err_line(capsys, rc, contains=(f"{bomb}: the YAML expands to", "alias"))
+
+
+def test_sigint_swallowed_during_start_up_still_exits_130(capsys, monkeypatch):
+    import os
+    import signal
+
+    import microctl.cli as cli
+
+    real = cli.build_parser
+
+    def swallowing_import():  # a library that catches the KeyboardInterrupt of a Ctrl-C while it loads
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        except KeyboardInterrupt:
+            pass
+        return real()
+
+    monkeypatch.setattr(cli, "build_parser", swallowing_import)
+    rc = main(["stage", "show", "--config", str(TABLE1)])
+    cap = capsys.readouterr()
+    assert rc == 130 and cap.err == "microctl: interrupted\n" and cap.out == ""
+
+
+def test_sigint_surfacing_as_import_error_exits_130(capsys, monkeypatch):
+    import os
+    import signal
+
+    import microctl.cli as cli
+
+    def failing_import():  # a compiled module interrupted while it initialises
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None
+
+    monkeypatch.setattr(cli, "build_parser", failing_import)
+    rc = main(["stage", "show", "--config", str(TABLE1)])
+    assert rc == 130 and capsys.readouterr().err == "microctl: interrupted\n"
