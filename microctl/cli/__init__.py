@@ -92,12 +92,33 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         rc = 130  # the interrupt surfaced as another exception (an import failing half-way)
     finally:
-        if previous is not None:
+        if argv is None:  # the process's entry point: a Ctrl-C now, after the work, must not end it by the signal
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        elif previous is not None:
             signal.signal(signal.SIGINT, previous)
     if _SIGINTS or rc == 130:
         print("microctl: interrupted", file=sys.stderr)
+        if argv is None:
+            _exit_now(130)
         return 130
     return rc
+
+
+def _exit_now(status: int) -> None:
+    """Flush and end the process with ``status`` at once.
+
+    CPython remembers a KeyboardInterrupt that ended code run from C (a compiled module's
+    start-up) even when it was caught, and then ends the process by SIGINT instead of with
+    the status ``main`` returned; ``os._exit`` keeps the documented 130.
+    """
+    import os
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(status)
 
 
 def _main(argv: Sequence[str] | None) -> int:

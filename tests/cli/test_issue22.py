@@ -169,3 +169,52 @@ def test_sigint_surfacing_as_import_error_exits_130(capsys, monkeypatch):
     monkeypatch.setattr(cli, "build_parser", failing_import)
     rc = main(["stage", "show", "--config", str(TABLE1)])
     assert rc == 130 and capsys.readouterr().err == "microctl: interrupted\n"
+
+
+# ---- items 16, 17, 19, 21: gp fit and train inputs ---------------------------------------------
+
+def _table(path: Path, xs, ys) -> Path:
+    path.write_text("x,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(xs, ys)))
+    return path
+
+
+@pytest.mark.parametrize("column", ["x", "y"])
+def test_gp_fit_refuses_values_too_large_to_standardise(tmp_path, capsys, column):
+    import numpy as np
+
+    xs = np.linspace(0, 1, 20)
+    ys = np.sin(xs)
+    if column == "x":
+        xs = xs * 1e300
+    else:
+        ys = ys * 1e300
+    data = _table(tmp_path / "d.csv", xs, ys)
+    rc = main(["gp", "fit", str(data), "--x", "x", "--y", "y", "-o", str(tmp_path / "g.npz"), "--quiet"])
+    _err_line(capsys, rc, contains=(f"{data}:", "cannot be standardised"))
+    assert not (tmp_path / "g.npz").exists()
+
+
+def test_gp_fit_refuses_too_few_rows_and_unbounded_restarts(tmp_path, capsys):
+    data = _table(tmp_path / "d.csv", [0.0, 1.0], [0.0, 1.0])
+    rc = main(["gp", "fit", str(data), "--x", "x", "--y", "y", "-o", str(tmp_path / "g.npz"), "--quiet"])
+    _err_line(capsys, rc, contains=(str(data), "5"))
+    with pytest.raises(SystemExit) as info:
+        main(["gp", "fit", str(data), "--x", "x", "--y", "y", "-o", str(tmp_path / "g.npz"),
+              "--restarts", "1000000000"])
+    assert info.value.code == 2 and "must be at most 100" in capsys.readouterr().err
+
+
+def test_train_on_identical_moves_names_the_file(tmp_path, capsys, table1_path):
+    import numpy as np
+
+    from microctl.models.afm import AnalyticForwardModel
+
+    afm = AnalyticForwardModel(load_stage_config(table1_path).stage)
+    u = afm.workspace.sample(1, np.random.default_rng(0))[0]
+    q = afm.K @ u
+    t = float(afm.t_of(u[None])[0])
+    log = tmp_path / "same.csv"
+    log.write_text("seq,u_z,u_rx,u_ry,q1,q2,q3,q4,t\n" + "".join(
+        ",".join([str(k), *(repr(float(v)) for v in (*u, *q)), repr(t)]) + "\n" for k in range(30)))
+    rc = main(["train", str(log), "--config", str(table1_path), "-o", str(tmp_path / "m.npz"), "--restarts", "1"])
+    _err_line(capsys, rc, contains=(f"{log}: ", "constant"))

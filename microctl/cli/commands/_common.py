@@ -16,8 +16,8 @@ def add_quiet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="hide progress on stderr")
 
 
-def int_at_least(minimum: int, rule: str):
-    """An argparse type: an integer >= ``minimum``; ``rule`` says what is valid in the error."""
+def int_at_least(minimum: int, rule: str, maximum: int | None = None):
+    """An argparse type: an integer >= ``minimum`` (and <= ``maximum``); ``rule`` says what is valid."""
 
     def parse(text: str) -> int:
         try:
@@ -26,6 +26,8 @@ def int_at_least(minimum: int, rule: str):
             raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"must be {rule}, got {value}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum}, got {value}")
         return value
 
     return parse

@@ -7,7 +7,7 @@ import sys
 import time
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
-from microctl.errors import ConfigError
+from microctl.errors import ConfigError, DataError
 from microctl.measurement.log import read_log
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
@@ -70,7 +70,10 @@ def _run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if not args.quiet and sys.stderr.isatty():
         print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
-    model = train_residual_model(data, afm, settings)
+    try:
+        model = train_residual_model(data, afm, settings)
+    except DataError as exc:  # e.g. "y is constant": say which file
+        raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
     model.save(args.out)
     # the result on stdout (progress and notes go to stderr): shown also with --quiet
     print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
