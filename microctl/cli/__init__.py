@@ -28,10 +28,49 @@ def _parser_class() -> type:
     import argparse
 
     class _Parser(argparse.ArgumentParser):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            # "-3,0,0,0,0" and "-20,-10" are values (--state, --targets, --start-q), not options
+            self._negative_number_matcher = _NEGATIVE_VALUES
+
         def error(self, message: str) -> None:  # noqa: D401 - argparse API
-            self.exit(2, f"{self.prog}: error: {message}\n")
+            self.exit(2, f"{self.prog}: error: {_hint(self, message)}\n")
 
     return _Parser
+
+
+#: What argparse takes for a negative number (a value, not an option): also comma-separated lists.
+_NEGATIVE_VALUES = __import__("re").compile(r"^-(\d|\.\d)[\d.eE+\-,]*$")
+
+
+def _hint(parser: argparse.ArgumentParser, message: str) -> str:
+    """``message`` with "did you mean" for a mistyped option (``--moves`` → ``-n``)."""
+    import difflib
+
+    if not message.startswith("unrecognized arguments:"):
+        return message
+    options = sorted({s for a in parser._actions for s in a.option_strings} - {"-h", "--help", "--version"})
+    aliases = {"--moves": "-n", "--n": "-n", "--output": "-o/--out", "--target-um": "--target", "--cfg": "--config"}
+    hints = []
+    for word in message.split(":", 1)[1].split():
+        name = word.split("=", 1)[0]
+        if not name.startswith("-"):
+            continue
+        guess = aliases.get(name) if aliases.get(name, "").split("/")[0] in options else None
+        guess = guess or next(iter(difflib.get_close_matches(name, options, n=1, cutoff=0.6)), None)
+        if guess:
+            hints.append(f"did you mean {guess} instead of {name}?")
+    return message + ("; " + " ".join(hints) if hints else "") + f" (see {parser.prog} --help)"
+
+
+def _deepest_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub-)sub-command ``args`` chose."""
+    while True:
+        subs = [a for a in parser._actions if hasattr(a, "choices") and isinstance(a.choices, dict) and a.choices]
+        name = getattr(args, subs[0].dest, None) if subs else None
+        if not subs or name not in subs[0].choices:
+            return parser
+        parser = subs[0].choices[name]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,7 +164,9 @@ def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     if _SIGINTS:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
         raise KeyboardInterrupt
-    args = parser.parse_args(argv)
+    args, extras = parser.parse_known_args(argv)
+    if extras:  # reported by the sub-command's parser, which knows the options to suggest
+        _deepest_parser(parser, args).error(f"unrecognized arguments: {' '.join(extras)}")
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

@@ -430,4 +430,8 @@ def load_experiment_config(path: str | Path) -> ExperimentConfig:
     data = load_yaml(path)
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: expected a YAML mapping with at least 'stage', got {type(data).__name__}")
+    if "backend" in data or isinstance(data.get("stage"), Mapping):
+        raise ConfigError(f"{path}: this is a stage file (it has 'stage:' as a mapping or 'backend:'), not an "
+                          "experiment file; give it to --config of collect/train/solve/diagnose, or name it in an "
+                          "experiment file's 'stage:' (e.g. configs/experiments/paper.yaml)")
     return parse_experiment_config(data, str(path), path.resolve().parent)

@@ -519,5 +519,10 @@ def load_stage_config(path: str | Path) -> StageConfig:
     resolved = resolve_config(path, "stage")
     if not resolved.exists():
         raise ConfigError(f"{path}: cannot read: No such file or directory{missing_hint('stage')}")
-    return parse_stage_config(load_yaml(resolved), source=str(path))
+    data = load_yaml(resolved)
+    if isinstance(data, Mapping) and isinstance(data.get("stage"), str) and "backend" not in data:
+        raise ConfigError(f"{path}: this is an experiment file (its 'stage:' names the stage file "
+                          f"'{data['stage']}'), not a stage file; run it with `microctl experiment {path}`, or give "
+                          "--config the stage file it names")
+    return parse_stage_config(data, source=str(path))
 

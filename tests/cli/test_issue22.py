@@ -218,3 +218,78 @@ def test_train_on_identical_moves_names_the_file(tmp_path, capsys, table1_path):
         ",".join([str(k), *(repr(float(v)) for v in (*u, *q)), repr(t)]) + "\n" for k in range(30)))
     rc = main(["train", str(log), "--config", str(table1_path), "-o", str(tmp_path / "m.npz"), "--restarts", "1"])
     _err_line(capsys, rc, contains=(f"{log}: ", "constant"))
+
+
+# ---- item 3: hints on typical mistakes ----------------------------------------------------------
+
+@pytest.mark.parametrize("argv,hint", [
+    (["collect", "--config", "sim_paper", "--moves", "5", "-o", "x.csv"], "did you mean -n instead of --moves?"),
+    (["stage", "show", "--config", "sim_paper", "--jsn"], "did you mean --json instead of --jsn?"),
+])
+def test_mistyped_option_gets_a_suggestion(capsys, argv, hint):
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and hint in err and err.count("\n") == 1, err
+
+
+def test_json_or_yaml_given_as_a_log(tmp_path, capsys):
+    js = tmp_path / "s.json"
+    js.write_text('{\n  "target_um": 14.0\n}\n')
+    rc = main(["train", str(js), "--config", str(TABLE1), "-o", str(tmp_path / "m.npz")])
+    _err_line(capsys, rc, contains=(f"{js}: this is JSON",))
+    rc = main(["train", str(TABLE1), "--config", str(TABLE1), "-o", str(tmp_path / "m.npz")])
+    _err_line(capsys, rc, contains=("this looks like YAML",))
+
+
+def test_stage_file_to_experiment_and_experiment_file_to_config(tmp_path, capsys):
+    rc = main(["experiment", str(SIM), "--out", str(tmp_path / "x")])
+    _err_line(capsys, rc, contains=("this is a stage file", "not an experiment file"))
+    rc = main(["stage", "show", "--config", str(ROOT / "configs/experiments/quick.yaml")])
+    _err_line(capsys, rc, contains=("this is an experiment file", "microctl experiment"))
+
+
+def test_connection_refused_suggests_emulate(tmp_path, capsys):
+    import socket
+
+    import yaml
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    doc = yaml.safe_load((ROOT / "configs/stage/emulated.yaml").read_text())
+    text = yaml.safe_dump(doc)
+    import re
+
+    text = re.sub(r"socket://127\.0\.0\.1:\d+", f"socket://127.0.0.1:{port}", text)
+    cfg = tmp_path / "stage.yaml"
+    cfg.write_text(text)
+    rc = main(["collect", "--config", str(cfg), "-n", "2", "-o", str(tmp_path / "l.csv"), "--quiet"])
+    _err_line(capsys, rc, want_rc=1, contains=("Connection refused", "microctl emulate"))
+
+
+def test_packaged_config_by_short_name(capsys):
+    assert main(["stage", "show", "--config", "sim_paper", "--json"]) == 0
+    rc = main(["stage", "show", "--config", "no_such_stage"])
+    _err_line(capsys, rc, contains=("no_such_stage", "sim_paper", "table1"))
+
+
+# ---- item 21: negative numbers as option values; --seed bounds ----------------------------------
+
+def test_negative_option_values_parse():
+    from microctl.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(["solve", "--config", "x", "--model", "m", "--target", "1", "--state", "-3,0,0,0,0"])
+    assert args.state == "-3,0,0,0,0"
+    args = parser.parse_args(["solve", "--config", "x", "--model", "m", "--targets", "-20,-10"])
+    assert args.targets == "-20,-10"
+    args = parser.parse_args(["emulate", "--config", "x", "--start-q", "-0,0,0,0"])
+    assert args.start_q == "-0,0,0,0"
+
+
+def test_seed_beyond_64_bits_is_a_usage_error_at_once(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["diagnose", "x.csv", "--config", str(TABLE1), "--out", "d", "--seed", str(2**64)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "argument --seed: must be at most 9223372036854775807" in err

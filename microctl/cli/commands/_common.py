@@ -33,8 +33,11 @@ def int_at_least(minimum: int, rule: str, maximum: int | None = None):
     return parse
 
 
-#: argparse type of ``--seed``: a non-negative integer (what NumPy's generators take).
-seed = int_at_least(0, "a non-negative integer")
+#: Largest ``--seed`` (what every seeded setting accepts: a signed 64-bit integer).
+MAX_SEED = 2**63 - 1
+
+#: argparse type of ``--seed``: a non-negative integer (what NumPy's generators take), at most :data:`MAX_SEED`.
+seed = int_at_least(0, "a non-negative integer", MAX_SEED)
 
 
 def add_seed(parser: argparse.ArgumentParser, help_text: str) -> None:
