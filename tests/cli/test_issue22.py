@@ -293,3 +293,22 @@ def test_seed_beyond_64_bits_is_a_usage_error_at_once(capsys):
         main(["diagnose", "x.csv", "--config", str(TABLE1), "--out", "d", "--seed", str(2**64)])
     err = capsys.readouterr().err
     assert info.value.code == 2 and "argument --seed: must be at most 9223372036854775807" in err
+
+
+# ---- item 6: readings in mm ---------------------------------------------------------------------
+
+def test_train_refuses_readings_in_mm(tmp_path, capsys):
+    import csv
+
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(SIM), "-n", "30", "-o", str(log), "--quiet"]) == 0
+    rows = list(csv.reader(log.open()))
+    for name in ("t", "t_prev"):
+        col = rows[0].index(name)
+        for r in rows[1:]:
+            r[col] = repr(float(r[col]) / 1000)  # µm -> mm
+    with log.open("w") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+    capsys.readouterr()
+    rc = main(["train", str(log), "--config", str(SIM), "-o", str(tmp_path / "m.npz"), "--restarts", "1"])
+    _err_line(capsys, rc, contains=(f"{log}: column 't'", "are they in mm?"))

@@ -8,7 +8,7 @@ import time
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
 from microctl.errors import ConfigError, DataError
-from microctl.measurement.log import read_log
+from microctl.measurement.log import check_reading_scale, read_log
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
     NOISE_MODELS,
@@ -63,6 +63,7 @@ def _run(args: argparse.Namespace) -> int:
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
+    check_reading_scale(log, afm)  # readings in mm, not µm, would train a model of nothing
     data = residual_dataset(log, afm)
     note = afm.dynamic_corrections_note()
     if note:
