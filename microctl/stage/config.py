@@ -267,8 +267,26 @@ def _parse_actuators(ctx: FieldReader, acts_raw: Any, dof: list[str]) -> list[Ac
             )
         if any(act.name == b.name for b in actuators):
             raise ctx.fail(f"{p}.name", f"actuator name '{act.name}' is used twice")
+        _check_column_name(ctx, act.name, f"{p}.name", dof)
+        for j, b in enumerate(actuators):
+            if np.allclose(act.contact_mm, b.contact_mm, atol=1e-9, rtol=0):
+                raise ctx.fail(f"{p}.contact_mm", f"{list(act.contact_mm)} is the contact point of "
+                               f"stage.actuators[{j}] ('{b.name}'); two balls cannot push at one point")
         actuators.append(act)
     return actuators
+
+
+#: Names a measurement log uses for its own columns (docs/measurement-log.md; the experiment logs'
+#: extra columns): an actuator or the tool may not take them.
+RESERVED_COLUMN_NAMES = ("seq", "time_s", "trial", "target_um", "controller", "point")
+
+
+def _check_column_name(ctx: FieldReader, name: str, field: str, dof: list[str]) -> None:
+    """An actuator's or the tool's name becomes a log column: it must not be one the log already has."""
+    reserved = set(RESERVED_COLUMN_NAMES) | {f"u_{d}" for d in dof}
+    if name in reserved or name.endswith("_prev"):
+        raise ctx.fail(field, f"'{name}' is a measurement-log column name ({', '.join(sorted(reserved))}, and "
+                       "NAME_prev); choose another name")
 
 
 def _parse_tool(ctx: FieldReader, raw: Any, actuators: list[Actuator], dof: list[str]) -> Tool:
@@ -281,6 +299,7 @@ def _parse_tool(ctx: FieldReader, raw: Any, actuators: list[Actuator], dof: list
     )
     if tool.name in {a.name for a in actuators} or tool.name in dof:
         raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
+    _check_column_name(ctx, tool.name, "stage.tool.name", dof)
     return tool
 
 

@@ -312,3 +312,54 @@ def test_train_refuses_readings_in_mm(tmp_path, capsys):
     capsys.readouterr()
     rc = main(["train", str(log), "--config", str(SIM), "-o", str(tmp_path / "m.npz"), "--restarts", "1"])
     _err_line(capsys, rc, contains=(f"{log}: column 't'", "are they in mm?"))
+
+
+# ---- item 16: wrong accepts ---------------------------------------------------------------------
+
+def _stage_variant(tmp_path, edit) -> Path:
+    import yaml
+
+    doc = yaml.safe_load(TABLE1.read_text())
+    edit(doc)
+    path = tmp_path / "stage.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize("field,value,needle", [
+    ("contact", None, "two balls cannot push at one point"),
+    ("actuator", "seq", "is a measurement-log column name"),
+    ("actuator", "time_s", "is a measurement-log column name"),
+    ("actuator", "u_z", "is a measurement-log column name"),
+    ("actuator", "q1_prev", "is a measurement-log column name"),
+    ("tool", "t_prev", "is a measurement-log column name"),
+])
+def test_stage_yaml_wrong_accepts_refused(tmp_path, capsys, field, value, needle):
+    def edit(doc):
+        acts = doc["stage"]["actuators"]
+        if field == "contact":
+            acts[1]["contact_mm"] = list(acts[0]["contact_mm"])
+        elif field == "actuator":
+            acts[3]["name"] = value
+        else:
+            doc["stage"]["tool"]["name"] = value
+
+    path = _stage_variant(tmp_path, edit)
+    rc = main(["stage", "show", "--config", str(path)])
+    _err_line(capsys, rc, contains=(str(path), needle))
+
+
+def test_reply_pattern_without_capture_group_refused(tmp_path, capsys):
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "configs/stage/emulated.yaml").read_text())
+    doc["backend"]["serial"]["gauge"]["reply_pattern"] = r"^-?\d+\.\d+$"
+    path = tmp_path / "stage.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    rc = main(["stage", "show", "--config", str(path)])
+    _err_line(capsys, rc, contains=("reply_pattern", "exactly one capture group"))
+
+
+def test_emulate_refuses_one_port_for_several_devices(capsys):
+    rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "50999,50999,50999"])
+    _err_line(capsys, rc, contains=("--ports: port 50999 is given 3 times",))
