@@ -261,6 +261,8 @@ def _open_model_file(path: Path) -> Any:
     """
     if path.is_dir():
         raise ValueError("it is a directory; give the .npz file written by `microctl train` or `microctl gp fit`")
+    if path.exists() and not path.is_file():  # a FIFO or device: reading would wait forever
+        raise ValueError("it is not a regular file (a FIFO, socket or device); give the .npz file")
     with path.open("rb") as fh:  # FileNotFoundError: load says "no such model file"
         head = fh.read(64)
     if not head:

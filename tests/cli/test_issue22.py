@@ -363,3 +363,60 @@ def test_reply_pattern_without_capture_group_refused(tmp_path, capsys):
 def test_emulate_refuses_one_port_for_several_devices(capsys):
     rc = main(["emulate", "--config", str(ROOT / "configs/stage/emulated.yaml"), "--ports", "50999,50999,50999"])
     _err_line(capsys, rc, contains=("--ports: port 50999 is given 3 times",))
+
+
+# ---- items 17, 20: unbounded work and blocking files ---------------------------------------------
+
+@pytest.mark.parametrize("section,value,needle", [
+    ("absolute", {"points": 1000000000, "trials": 2}, "absolute: points × trials"),
+    ("absolute", {"points": 30, "trials": 1000000000}, "absolute: points × trials"),
+    ("incremental", {"targets_um": [7, 14], "trials": 1000000000}, "incremental: targets × trials"),
+    ("oracle", {"grid": 1000000}, "oracle.grid: must be an integer in [5, 201]"),
+    ("training", {"moves": 125, "refine_rounds": 100}, "training.refine_rounds"),
+    ("training", {"moves": 100000}, "training rows"),
+])
+def test_experiment_sizes_bounded_at_load(tmp_path, capsys, section, value, needle):
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "configs/experiments/quick.yaml").read_text())
+    doc["stage"] = str(SIM)
+    doc[section] = {**(doc.get(section) or {}), **value}
+    exp = tmp_path / "exp.yaml"
+    exp.write_text(yaml.safe_dump(doc))
+    rc = main(["experiment", str(exp), "--out", str(tmp_path / "out")])
+    _err_line(capsys, rc, contains=(needle,))
+
+
+def test_train_refuses_more_rows_than_it_can_fit(tmp_path, capsys, monkeypatch):
+    import microctl.cli.commands.train as train_cmd
+
+    monkeypatch.setattr(train_cmd, "MAX_TRAIN_ROWS", 20)
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(TABLE1), "-n", "30", "-o", str(log), "--quiet"]) == 0
+    capsys.readouterr()
+    rc = main(["train", str(log), "--config", str(TABLE1), "-o", str(tmp_path / "m.npz")])
+    _err_line(capsys, rc, contains=(f"{log}: 30 rows", "subsample"))
+
+
+def test_fifos_refused_as_inputs_and_outputs(tmp_path, capsys):
+    import os
+
+    fifo = tmp_path / "ff"
+    os.mkfifo(fifo)
+    cases = [
+        (["stage", "show", "--config", str(fifo)], "not a regular file"),
+        (["train", str(fifo), "--config", str(TABLE1), "-o", str(tmp_path / "m.npz")], "not a regular file"),
+        (["gp", "predict", str(fifo), str(ROOT / "tests/data/mcycle.csv"), "-o", str(tmp_path / "p.csv")],
+         "not a regular file"),
+        (["collect", "--config", str(TABLE1), "-n", "3", "-o", str(fifo)], "is a FIFO or socket"),
+    ]
+    for argv, needle in cases:
+        rc = main(argv)
+        _err_line(capsys, rc, contains=(needle,))
+
+
+def test_atomic_write_to_a_device_writes_through(tmp_path):
+    from microctl.util.atomic import write_text_atomic
+
+    write_text_atomic("/dev/null", "x")  # never replaced by a regular file
+    assert Path("/dev/null").is_char_device()

@@ -54,6 +54,16 @@ def _same_file(a: Path, b: Path) -> bool:
     return a.resolve() == b.resolve()
 
 
+def _is_fifo_or_socket(path: Path) -> bool:
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
+
+
 def check_output_file(path: str | Path, flag: str, inputs: Mapping[str, str | Path | None]) -> Path:
     """Refuse an output file that is an input, a directory or in a missing folder (ConfigError, exit 2).
 
@@ -72,6 +82,8 @@ def check_output_file(path: str | Path, flag: str, inputs: Mapping[str, str | Pa
             raise ConfigError(f"{flag} {path}: is {what}; refusing to overwrite an input, choose another file name")
     if path.is_dir():
         raise ConfigError(f"{flag} {path}: is a directory, expected a file name to write")
+    if _is_fifo_or_socket(path):
+        raise ConfigError(f"{flag} {path}: is a FIFO or socket (writing would wait forever); give a file name")
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise ConfigError(f"{flag} {path}: the folder '{parent}' does not exist")

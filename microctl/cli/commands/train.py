@@ -8,9 +8,11 @@ import time
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
 from microctl.errors import ConfigError, DataError
-from microctl.measurement.log import check_reading_scale, read_log
+from microctl.measurement.log import read_log
+from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
+    MAX_TRAIN_ROWS,
     NOISE_MODELS,
     ResidualModelSettings,
     noise_summary,
@@ -64,6 +66,9 @@ def _run(args: argparse.Namespace) -> int:
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
     check_reading_scale(log, afm)  # readings in mm, not µm, would train a model of nothing
+    if len(log) > MAX_TRAIN_ROWS:
+        raise DataError(f"{args.log}: {len(log)} rows; a residual model is trained on at most {MAX_TRAIN_ROWS} "
+                        "(its cost grows as rows³); train on a subsample of the log")
     data = residual_dataset(log, afm)
     note = afm.dynamic_corrections_note()
     if note:
