@@ -109,3 +109,22 @@ def test_readme_install_block_in_a_copy(tmp_path):
     proc = _bash(readme_block("Install") + "\nmicroctl stage show --config sim_paper\n", clone, timeout=1800)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "reachable t" in proc.stdout
+
+
+def test_docs_have_no_dangling_references():
+    """No page points at files or threads a reader of the repository cannot open (issue 22 item 12)."""
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    bad = re.compile(r"`(?:shared/)?spec/[\w.-]+`|notes/[\w.-]+\.md|\bissue \d+\b")
+    found = [f"{p.name}: {m.group(0)}" for p in pages for m in bad.finditer(p.read_text())]
+    assert not found, found
+    for link in re.findall(r"\]\(([^)#:]+)\)", "\n".join(p.read_text() for p in pages[:1])):
+        assert (ROOT / link).exists(), f"README links to {link}, which does not exist"
+
+
+def test_readme_bench_command_names_the_published_methods():
+    page = (ROOT / "docs/generated/bench_rigs.md").read_text()
+    command = re.search(r"Command: `(python scripts/bench_rigs.py [^`]+)`", page).group(1)
+    flags = dict(re.findall(r"(--[\w-]+) (\S+)", command))
+    readme = (ROOT / "README.md").read_text()
+    line = re.search(r"`(python scripts/bench_rigs.py [^`]+)`", readme).group(1)
+    assert dict(re.findall(r"(--[\w-]+) (\S+)", line)) == flags
