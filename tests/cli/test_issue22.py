@@ -420,3 +420,30 @@ def test_atomic_write_to_a_device_writes_through(tmp_path):
 
     write_text_atomic("/dev/null", "x")  # never replaced by a regular file
     assert Path("/dev/null").is_char_device()
+
+
+# ---- item 5: a model used for another stage -------------------------------------------------------
+
+def test_model_for_another_stage_is_named(tmp_path, capsys, planted_log, table1_path):
+    import yaml
+
+    model = tmp_path / "m.npz"
+    assert main(["train", str(planted_log), "--config", str(table1_path), "-o", str(model), "--restarts", "1",
+                 "--quiet"]) == 0
+    doc = yaml.safe_load(table1_path.read_text())
+    # same geometry, other contact physics (as sim_paper.yaml vs sim_paper_scale.yaml): said on stderr
+    doc["stage"]["name"] = "other-rig"
+    doc["stage"]["physics"] = {"preload_n": 50.0}
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc, sort_keys=False))
+    capsys.readouterr()
+    assert main(["solve", "--config", str(other), "--model", str(model), "--target", "10", "--json"]) == 0
+    err = capsys.readouterr().err
+    assert "was trained for stage 'table1'" in err and "contact physics" in err, err
+    # same geometry, other model corrections (the extended config of diagnose): not "another geometry"
+    doc = yaml.safe_load(table1_path.read_text())
+    doc["stage"]["corrections"] = {"actuator_gain": [{"actuator": 4, "gain": 0.6}]}
+    ext = tmp_path / "extended.yaml"
+    ext.write_text(yaml.safe_dump(doc, sort_keys=False))
+    rc = main(["solve", "--config", str(ext), "--model", str(model), "--target", "10"])
+    _err_line(capsys, rc, contains=("same geometry with other model corrections",))

@@ -118,6 +118,8 @@ def _run(args: argparse.Namespace) -> int:
     if targets is None and not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
     eafm = EAFM(afm, args.model)
+    if eafm.binding_note:
+        print(f"solve: note: {eafm.binding_note}", file=sys.stderr)
     settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa, sequence_objective=args.sequence_objective)
     base_ctrl = AFMController(afm, settings, reporter=eafm)
     if targets is not None:
