@@ -147,7 +147,28 @@ def control_line(c: dict) -> str:
     pl = ", ".join(f"{r[key]:.3f}" for r in c["models"]["plain"])
     ex = ", ".join(f"{r[key]:.3f}" for r in c["models"]["extended"])
     return (f"control at {', '.join(f'{t:.3g}' for t in c['targets_um'])} µm: {what} std at the chosen poses "
-            f"plain EAFM [{pl}] µm, extended [{ex}] µm")
+            f"plain EAFM [{pl}] µm, extended [{ex}] µm; verdict: {control_verdict(c)}")
+
+
+#: Relative difference of the std below which ``control_verdict`` calls two controllers alike.
+VERDICT_TOLERANCE = 0.05
+
+
+def control_verdict(c: dict) -> str:
+    """One phrase: is the extended controller's scatter lower than the plain one's at every target?"""
+    key = "true_std_um" if c["truth"] else "predicted_std_um"
+    ratios = [e[key] / p[key] for p, e in zip(c["models"]["plain"], c["models"]["extended"]) if p[key] > 0]
+    if not ratios:
+        return "undetermined (no std to compare)"
+    shown = "/".join(f"{r:.3f}" for r in ratios)
+    if all(r < 1 - VERDICT_TOLERANCE for r in ratios):
+        return f"the extended controller is better (std ratio extended/plain {shown})"
+    if all(r > 1 + VERDICT_TOLERANCE for r in ratios):
+        return f"the plain controller is better (std ratio extended/plain {shown})"
+    if all(abs(r - 1) <= VERDICT_TOLERANCE for r in ratios):
+        return (f"no clear difference (std ratio extended/plain {shown}, within "
+                f"±{VERDICT_TOLERANCE:.0%} at every target)")
+    return f"mixed (std ratio extended/plain {shown}: better at some targets, worse at others)"
 
 
 def control_markdown(c: dict) -> list[str]:

@@ -447,3 +447,31 @@ def test_model_for_another_stage_is_named(tmp_path, capsys, planted_log, table1_
     ext.write_text(yaml.safe_dump(doc, sort_keys=False))
     rc = main(["solve", "--config", str(ext), "--model", str(model), "--target", "10"])
     _err_line(capsys, rc, contains=("same geometry with other model corrections",))
+
+
+# ---- item 10: diagnose's one-line verdict ------------------------------------------------------------
+
+@pytest.mark.parametrize("extended,verdict", [
+    ([0.5, 0.4], "the extended controller is better"),
+    ([0.993 * 0.6, 0.988 * 0.7], "no clear difference"),
+    ([0.9, 0.9], "the plain controller is better"),
+    ([0.3, 0.9], "mixed"),
+])
+def test_diagnose_control_line_has_a_verdict(extended, verdict):
+    from microctl.diagnosis.report import control_line
+
+    c = {"truth": True, "targets_um": [14.0, 21.0],
+         "models": {"plain": [{"true_std_um": 0.6}, {"true_std_um": 0.7}],
+                    "extended": [{"true_std_um": v} for v in extended]}}
+    line = control_line(c)
+    assert f"verdict: {verdict}" in line and "\n" not in line
+
+
+def test_diagnose_wrote_line_names_the_figures(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(SIM), "-n", "40", "-o", str(log), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(log), "--config", str(SIM), "--out", str(tmp_path / "d"), "--no-gp"]) == 0
+    wrote = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("wrote ")]
+    assert wrote and "residuals.png" in wrote[0] and "causes.png" in wrote[0], wrote
