@@ -475,3 +475,31 @@ def test_diagnose_wrote_line_names_the_figures(tmp_path, capsys):
     assert main(["diagnose", str(log), "--config", str(SIM), "--out", str(tmp_path / "d"), "--no-gp"]) == 0
     wrote = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("wrote ")]
     assert wrote and "residuals.png" in wrote[0] and "causes.png" in wrote[0], wrote
+
+
+# ---- item 11: Fig. 6's MSSE lines --------------------------------------------------------------------
+
+def test_fig6_msse_lines_never_hide_each_other_and_are_in_the_legend():
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from microctl.experiments.figures import figure_fig6
+
+    sse = [[0.1, 0.2], [0.3, 0.1], [0.2, 0.2]]
+    same = {"sse_um": sse, "msse_um": [0.2, 0.1667]}
+    inc = {"targets_um": [7, 14], "trials": 3,
+           "controllers": {"afm": {"sse_um": [[1, 2]] * 3, "msse_um": [1, 2]}, "eafm": same,
+                           "eafm_sequence": dict(same)}}
+    fig = figure_fig6(inc)
+    ax = fig.axes[0]
+    msse = [ln for ln in ax.get_lines() if ln.get_label().endswith("MSSE")]
+    assert len(msse) == 3
+    a, b = [ln for ln in msse if ln.get_ydata()[0] == 0.2]
+    assert a.get_color() != b.get_color()
+    assert a._dash_pattern[0] != b._dash_pattern[0]  # interleaved dashes: both colours visible
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert sum(t.endswith("MSSE") for t in legend) == 3
+    plt.close(fig)
