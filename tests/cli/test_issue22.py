@@ -503,3 +503,23 @@ def test_fig6_msse_lines_never_hide_each_other_and_are_in_the_legend():
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert sum(t.endswith("MSSE") for t in legend) == 3
     plt.close(fig)
+
+
+# ---- items 4, 21: one range, rounded; absurd targets --------------------------------------------------
+
+def test_unreachable_target_message_is_rounded_and_absurd_targets_refused_early(capsys, planted_log,
+                                                                               table1_path, tmp_path):
+    import re
+    import warnings
+
+    model = tmp_path / "m.npz"
+    assert main(["train", str(planted_log), "--config", str(table1_path), "-o", str(model), "--restarts", "1",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    rc = main(["solve", "--config", str(table1_path), "--model", str(model), "--target", "500"])
+    err = _err_line(capsys, rc, contains=("unreachable", "reaches ["))
+    assert not re.search(r"\d\.\d{5,}", err), err
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning before the error line
+        rc = main(["solve", "--config", str(table1_path), "--model", str(model), "--target", "1e308"])
+    _err_line(capsys, rc, contains=("far outside what stage 'table1' reaches", "stage show"))
