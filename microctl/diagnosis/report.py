@@ -178,7 +178,9 @@ def control_markdown(c: dict) -> list[str]:
          "one on the AFM with the accepted corrections and a noise model restricted to the diagnosed stick-slip "
          "actuators) drive the default optimal controller (eq. 4) to the same targets in sequence from the zero "
          "state." + (" Scatter and error at the chosen poses from the simulated stage's truth; the oracle is the "
-                     "quietest pose that truly reaches the target." if c["truth"] else
+                     "quietest pose that truly reaches the target exactly (found on a grid), so a chosen pose that "
+                     "misses the target (true error ≠ 0) can be quieter than it: such a true std is marked *, "
+                     "and it is bought with the error beside it." if c["truth"] else
                      " No simulator here: only predictions (the true scatter needs the stage)."), ""]
     head = "| target (µm) | model | q (µm) | predicted std (µm) |"
     sep = "|---|---|---|---|"
@@ -192,7 +194,8 @@ def control_markdown(c: dict) -> list[str]:
             row = (f"| {t:.3g} | {label} | [{', '.join(f'{v:.2f}' for v in r['q_um'])}] | "
                    f"{r['predicted_std_um']:.4f} |")
             if c["truth"]:
-                row += f" {r['true_std_um']:.4f} | {r['true_error_um']:+.4f} | {r['oracle_std_um']:.4f} |"
+                star = "*" if r["true_std_um"] < r["oracle_std_um"] else ""
+                row += f" {r['true_std_um']:.4f}{star} | {r['true_error_um']:+.4f} | {r['oracle_std_um']:.4f} |"
             L.append(row)
     return L + [""]
 

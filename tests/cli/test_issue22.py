@@ -523,3 +523,13 @@ def test_unreachable_target_message_is_rounded_and_absurd_targets_refused_early(
         warnings.simplefilter("error")  # no RuntimeWarning before the error line
         rc = main(["solve", "--config", str(table1_path), "--model", str(model), "--target", "1e308"])
     _err_line(capsys, rc, contains=("far outside what stage 'table1' reaches", "stage show"))
+
+
+def test_diagnose_control_table_explains_a_std_below_the_oracle():
+    from microctl.diagnosis.report import control_markdown
+
+    c = {"truth": True, "targets_um": [41.1],
+         "models": {m: [{"q_um": [1, 2, 3, 4], "predicted_std_um": 0.6, "true_std_um": v, "true_error_um": 0.3,
+                         "oracle_std_um": 0.608}] for m, v in (("plain", 0.598), ("extended", 0.611))}}
+    text = "\n".join(control_markdown(c))
+    assert "| 0.5980* |" in text and "| 0.6110 |" in text and "misses the target" in text
