@@ -23,7 +23,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 TABLE1 = ROOT / "configs/stage/table1.yaml"
 MCYCLE = ROOT / "tests/data/mcycle.csv"
-TRIALS_PER_COMMAND = 14  # x 4 commands = 56 trials (plus 6 of diagnose)
+TRIALS_PER_COMMAND = 14  # x 4 commands = 56 trials (plus 6 of diagnose and 6 of experiment)
 
 
 def _run(argv, cwd):
@@ -82,6 +82,46 @@ COMMANDS = {
                   "--seed", "4"], {"diag/report.json": _valid_report, "diag/extended.yaml": lambda p: p.read_text(),
                                    "diag/report.md": lambda p: p.read_text()}, 8.0),
 }
+
+
+def _valid_csv_log(path: Path) -> None:
+    lines = path.read_text().splitlines()
+    assert lines and all(ln.count(",") == lines[0].count(",") for ln in lines), "ragged rows"
+
+
+@pytest.mark.slow
+def test_kill_experiment_never_leaves_a_torn_file(work):
+    """``experiment --out`` clears the previous run first (docs/cli.md), so a file may be absent
+    after a kill; every file present is whole: old, or new and readable."""
+    import json
+
+    checks = {"results.json": lambda p: json.loads(p.read_text()), "report.md": lambda p: p.read_text(),
+              "model.npz": _valid_npz, "config.yaml": lambda p: p.read_text(),
+              "training_log.csv": _valid_csv_log, "incremental_log.csv": _valid_csv_log,
+              "absolute_log.csv": _valid_csv_log}
+    _run(["experiment", "quick", "--out", "exp", "--quiet"], work)
+    rng = np.random.default_rng(22)
+    for trial in range(6):
+        sig = signal.SIGKILL if trial % 2 == 0 else signal.SIGINT
+        old = {n: (work / "exp" / n).read_bytes() for n in checks if (work / "exp" / n).is_file()}
+        delay = float(rng.uniform(0.3, 8.0))
+        proc = subprocess.Popen([sys.executable, "-m", "microctl", "experiment", "quick", "--out", "exp", "--quiet",
+                                 "--seed-offset", str(trial + 1)], cwd=work, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        if proc.poll() is None:
+            os.kill(proc.pid, sig)
+        _, err = proc.communicate(timeout=600)
+        what = f"experiment trial {trial}: {sig.name} after {delay:.2f} s, exit {proc.returncode}"
+        if sig == signal.SIGINT and proc.returncode not in (0,):
+            assert proc.returncode in (1, 130) and "Traceback" not in err, f"{what}: {err[-2000:]}"
+        for name, check in checks.items():
+            path = work / "exp" / name
+            if path.is_file() and path.read_bytes() != old.get(name):
+                try:
+                    check(path)
+                except Exception as exc:  # noqa: BLE001 - the test reports what was torn
+                    pytest.fail(f"{what}: {name} is torn: {exc}")
 
 
 @pytest.mark.slow
