@@ -533,3 +533,12 @@ def test_diagnose_control_table_explains_a_std_below_the_oracle():
                          "oracle_std_um": 0.608}] for m, v in (("plain", 0.598), ("extended", 0.611))}}
     text = "\n".join(control_markdown(c))
     assert "| 0.5980* |" in text and "| 0.6110 |" in text and "misses the target" in text
+
+
+def test_gp_fit_refuses_more_rows_than_it_can_fit(tmp_path, capsys, monkeypatch):
+    import microctl.models.training as training
+
+    monkeypatch.setattr(training, "MAX_TRAIN_ROWS", 10)
+    data = _table(tmp_path / "d.csv", range(12), [v * v for v in range(12)])
+    rc = main(["gp", "fit", str(data), "--x", "x", "--y", "y", "-o", str(tmp_path / "g.npz")])
+    _err_line(capsys, rc, contains=(f"{data}: 12 rows", "subsample"))

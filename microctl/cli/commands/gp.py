@@ -95,6 +95,11 @@ def _fit(args: argparse.Namespace) -> int:
         raise DataError(f"--y '{y_col}' is also an input column in --x")
     check_output_file(args.out, "-o", {"the data file DATA.csv": args.data})
     table = read_table(args.data, min_rows=MIN_FIT_ROWS)
+    from microctl.models.training import MAX_TRAIN_ROWS
+
+    if len(table.rows) > MAX_TRAIN_ROWS:
+        raise DataError(f"{args.data}: {len(table.rows)} rows; the VHGPR is fitted to at most {MAX_TRAIN_ROWS} (its "
+                        "cost grows as rows³); fit a subsample")
     X = table.numeric_columns(x_cols)
     y = table.numeric(y_col)
     with Progress(1, "gp fit", quiet=args.quiet) as progress:
