@@ -168,7 +168,6 @@ class EAFM:
         self.n_p, self.n_q, self.n_s = afm.n_p, afm.n_q, afm.n_s
         self.n_x = self.n_s + self.n_p
         if check_geometry:
-            want = afm.stage.geometry_hash()
             if model.geometry_hash is None:
                 raise ConfigError(f"{source}: the residual model is not bound to a stage geometry "
                                   f"(no geometry_hash); train it with `microctl train` for this stage")
