@@ -73,7 +73,7 @@ def atomic_write(path: str | Path, mode: str = "w", *, encoding: str | None = "u
     if mode not in ("w", "wb"):
         raise ValueError(f"mode must be 'w' or 'wb', got {mode!r}")
     path = Path(path)
-    if path.exists() and not path.is_file() and not path.is_dir():  # /dev/null, /dev/full: write, never replace
+    if path.is_char_device() or path.is_block_device():  # /dev/null, /dev/full: write, never replace
         with open(path, mode, encoding=None if "b" in mode else encoding) as fh:
             yield fh
         return

@@ -75,3 +75,12 @@ def test_save_figure_is_atomic(tmp_path):
     atomic.save_figure(fig, tmp_path / "f.png", dpi=30)
     plt.close(fig)
     assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_atomic_write_over_a_fifo_replaces_it_without_blocking(tmp_path):
+    import os
+
+    path = tmp_path / "results.json"
+    os.mkfifo(path)
+    atomic.write_text_atomic(path, "{}\n")  # opening the FIFO for writing would wait for a reader forever
+    assert path.is_file() and path.read_text() == "{}\n"
