@@ -542,3 +542,20 @@ def test_gp_fit_refuses_more_rows_than_it_can_fit(tmp_path, capsys, monkeypatch)
     data = _table(tmp_path / "d.csv", range(12), [v * v for v in range(12)])
     rc = main(["gp", "fit", str(data), "--x", "x", "--y", "y", "-o", str(tmp_path / "g.npz")])
     _err_line(capsys, rc, contains=(f"{data}: 12 rows", "subsample"))
+
+
+def test_diagnose_refuses_readings_on_another_scale(tmp_path, capsys):
+    import csv
+
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(SIM), "-n", "45", "-o", str(log), "--quiet"]) == 0
+    rows = list(csv.reader(log.open()))
+    for name in ("t", "t_prev"):
+        col = rows[0].index(name)
+        for r in rows[1:]:
+            r[col] = repr(float(r[col]) * 8)  # plausible row by row, wrong as a whole
+    with log.open("w") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+    capsys.readouterr()
+    rc = main(["diagnose", str(log), "--config", str(SIM), "--out", str(tmp_path / "d"), "--quiet"])
+    _err_line(capsys, rc, contains=(f"{log}: column 't'", "another unit"))

@@ -42,6 +42,11 @@ def _run(args: argparse.Namespace) -> int:
     # rows no stage can have produced (a corrupt cell) are outliers to name, not a reason to stop
     data, set_aside, implausible = read_for_diagnosis(args.log, cfg.stage)
     _check_enough_plausible(args, cfg, set_aside, implausible)
+    from microctl.measurement.scale import check_spread
+    from microctl.models.afm import AnalyticForwardModel
+
+    keep = ~set_aside
+    check_spread(args.log, data.t[keep], data.u[keep], AnalyticForwardModel(cfg.stage))  # mm, nm, another stage
     if implausible and not args.quiet:
         for r in implausible[:NOTES_SHOWN]:
             print(f"diagnose: note: {args.log}: row {r.row + 2}, {r.column}: {r.message}; set aside as an outlier",
