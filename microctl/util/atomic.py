@@ -124,6 +124,9 @@ def output_lock(path: str | Path, flag: str = "-o") -> Iterator[Path]:
     import fcntl
 
     path = Path(path)
+    if path.is_char_device() or path.is_block_device():  # /dev/null: no lock file beside it in /dev
+        yield path
+        return
     folder = path.parent if str(path.parent) else Path(".")
     lock = folder / f".{path.name}.lock"
     try:
