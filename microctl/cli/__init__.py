@@ -31,7 +31,9 @@ def _parser_class() -> type:
         def __init__(self, *args, **kwargs) -> None:
             super().__init__(*args, **kwargs)
             # "-3,0,0,0,0" and "-20,-10" are values (--state, --targets, --start-q), not options
-            self._negative_number_matcher = _NEGATIVE_VALUES
+            import re
+
+            self._negative_number_matcher = re.compile(NEGATIVE_VALUES)
 
         def error(self, message: str) -> None:  # noqa: D401 - argparse API
             self.exit(2, f"{self.prog}: error: {_hint(self, message)}\n")
@@ -40,7 +42,7 @@ def _parser_class() -> type:
 
 
 #: What argparse takes for a negative number (a value, not an option): also comma-separated lists.
-_NEGATIVE_VALUES = __import__("re").compile(r"^-(\d|\.\d)[\d.eE+\-,]*$")
+NEGATIVE_VALUES = r"^-(\d|\.\d)[\d.eE+\-,]*$"
 
 
 def _hint(parser: argparse.ArgumentParser, message: str) -> str:
