@@ -122,9 +122,8 @@ def test_docs_have_no_dangling_references():
 
 
 def test_readme_bench_command_names_the_published_methods():
+    """README names, verbatim, the command that made the published bench_rigs table (with its --methods)."""
     page = (ROOT / "docs/generated/bench_rigs.md").read_text()
     command = re.search(r"Command: `(python scripts/bench_rigs.py [^`]+)`", page).group(1)
-    flags = dict(re.findall(r"(--[\w-]+) (\S+)", command))
-    readme = (ROOT / "README.md").read_text()
-    line = re.search(r"`(python scripts/bench_rigs.py [^`]+)`", readme).group(1)
-    assert dict(re.findall(r"(--[\w-]+) (\S+)", line)) == flags
+    readme = " ".join((ROOT / "README.md").read_text().split())  # a command may wrap across lines
+    assert f"`{command}`" in readme, command
