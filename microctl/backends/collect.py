@@ -44,6 +44,7 @@ def run_collect(
     out: str | Path,
     *,
     quiet: bool = False,
+    mode: str = "write",
 ) -> int:
     """Execute moves on a backend, writing the measurement log row by row.
 
@@ -55,6 +56,8 @@ def run_collect(
         The log file (overwritten).
     quiet : bool
         Hide progress on stderr.
+    mode : {"write", "replace", "append"}
+        How the log is opened (:data:`microctl.measurement.log.WRITE_MODES`).
 
     Returns
     -------
@@ -68,7 +71,7 @@ def run_collect(
         says how many.
     """
     moves = np.atleast_2d(moves)
-    with MeasurementLogWriter(out, backend.stage) as log, Progress(len(moves), "collect", quiet=quiet) as prog:
+    with MeasurementLogWriter(out, backend.stage, mode=mode) as log, Progress(len(moves), "collect", quiet=quiet) as prog:
         for k, u in enumerate(moves):
             s_prev = backend.state
             try:
@@ -76,6 +79,7 @@ def run_collect(
             except BackendError as exc:
                 raise BackendError(
                     f"move {k + 1} of {len(moves)} failed: {exc}; {out} keeps the {k} completed moves"
+                    + (" (after its earlier rows)" if mode == "append" else "")
                 ) from None
             log.write(m, s_prev, seq=k)
             prog.step(info=f"t = {m.t_um:.3f} µm")

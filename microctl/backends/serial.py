@@ -72,7 +72,11 @@ class _Port:
         try:
             self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise BackendError(f"{label} ({url}): cannot open: {exc}") from None
+            hint = ""
+            if "refused" in str(exc).lower() and url.startswith("socket://"):
+                hint = ("; nothing listens there: start the devices, or try the serial path with no hardware: "
+                        "`microctl emulate --config STAGE.yaml` serves the simulated stage on loopback")
+            raise BackendError(f"{label} ({url}): cannot open: {exc}{hint}") from None
 
     def fail(self, message: str) -> BackendError:
         return BackendError(f"{self.label} ({self.url}): {message}")

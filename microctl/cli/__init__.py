@@ -28,10 +28,51 @@ def _parser_class() -> type:
     import argparse
 
     class _Parser(argparse.ArgumentParser):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            # "-3,0,0,0,0" and "-20,-10" are values (--state, --targets, --start-q), not options
+            import re
+
+            self._negative_number_matcher = re.compile(NEGATIVE_VALUES)
+
         def error(self, message: str) -> None:  # noqa: D401 - argparse API
-            self.exit(2, f"{self.prog}: error: {message}\n")
+            self.exit(2, f"{self.prog}: error: {_hint(self, message)}\n")
 
     return _Parser
+
+
+#: What argparse takes for a negative number (a value, not an option): also comma-separated lists.
+NEGATIVE_VALUES = r"^-(\d|\.\d)[\d.eE+\-,]*$"
+
+
+def _hint(parser: argparse.ArgumentParser, message: str) -> str:
+    """``message`` with "did you mean" for a mistyped option (``--moves`` → ``-n``)."""
+    import difflib
+
+    if not message.startswith("unrecognized arguments:"):
+        return message
+    options = sorted({s for a in parser._actions for s in a.option_strings} - {"-h", "--help", "--version"})
+    aliases = {"--moves": "-n", "--n": "-n", "--output": "-o/--out", "--target-um": "--target", "--cfg": "--config"}
+    hints = []
+    for word in message.split(":", 1)[1].split():
+        name = word.split("=", 1)[0]
+        if not name.startswith("-"):
+            continue
+        guess = aliases.get(name) if aliases.get(name, "").split("/")[0] in options else None
+        guess = guess or next(iter(difflib.get_close_matches(name, options, n=1, cutoff=0.6)), None)
+        if guess:
+            hints.append(f"did you mean {guess} instead of {name}?")
+    return message + ("; " + " ".join(hints) if hints else "") + f" (see {parser.prog} --help)"
+
+
+def _deepest_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub-)sub-command ``args`` chose."""
+    while True:
+        subs = [a for a in parser._actions if hasattr(a, "choices") and isinstance(a.choices, dict) and a.choices]
+        name = getattr(args, subs[0].dest, None) if subs else None
+        if not subs or name not in subs[0].choices:
+            return parser
+        parser = subs[0].choices[name]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,18 +104,71 @@ def _one_line(exc: BaseException) -> str:
     return str(exc).replace("\r", "\\r").replace("\n", "\\n")
 
 
+#: SIGINTs received during the current :func:`main` (a Ctrl-C a library swallowed, or one that
+#: surfaced as another exception, e.g. ``ImportError: initialization failed`` from a compiled
+#: module being loaded, still ends the command with 130).
+_SIGINTS: list = []
+
+
+def _on_sigint(signum, frame) -> None:  # noqa: ARG001 - signal handler API
+    _SIGINTS.append(signum)
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
+    import signal
+
+    _SIGINTS.clear()
     try:
-        return _main(argv)
+        previous = signal.signal(signal.SIGINT, _on_sigint)
+    except ValueError:  # not the main thread (e.g. a test runner's worker)
+        previous = None
+    try:
+        rc = _main(argv)
     except KeyboardInterrupt:  # in a command, or while the command modules are still being imported
+        rc = 130
+    except BaseException:
+        if not _SIGINTS:
+            raise
+        rc = 130  # the interrupt surfaced as another exception (an import failing half-way)
+    finally:
+        if argv is None:  # the process's entry point: a Ctrl-C now, after the work, must not end it by the signal
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        elif previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if _SIGINTS or rc == 130:
         print("microctl: interrupted", file=sys.stderr)
+        if argv is None:
+            _exit_now(130)
         return 130
+    return rc
+
+
+def _exit_now(status: int) -> None:
+    """Flush and end the process with ``status`` at once.
+
+    CPython remembers a KeyboardInterrupt that ended code run from C (a compiled module's
+    start-up) even when it was caught, and then ends the process by SIGINT instead of with
+    the status ``main`` returned; ``os._exit`` keeps the documented 130.
+    """
+    import os
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(status)
 
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    if _SIGINTS:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
+        raise KeyboardInterrupt
+    args, extras = parser.parse_known_args(argv)
+    if extras:  # reported by the sub-command's parser, which knows the options to suggest
+        _deepest_parser(parser, args).error(f"unrecognized arguments: {' '.join(extras)}")
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

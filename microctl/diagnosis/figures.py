@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from microctl.diagnosis.selection import cause_label
+from microctl.util.atomic import save_figure
 
 
 def write_figures(diagnosis, out: Path) -> dict:
@@ -68,7 +69,7 @@ def _residuals(plt, dg, path: Path) -> Path:
     ax_list[0].legend(fontsize=7)
     fig.suptitle("Residual against inputs, previous state, time, direction")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return path
 
@@ -94,7 +95,7 @@ def _causes(plt, dg, path: Path) -> Path:
     ax.set_xscale("symlog", linthresh=10)
     ax.set_title("Which cause pays: ΔBIC of each candidate")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return path
 
@@ -129,6 +130,6 @@ def _gain(plt, dg, path: Path) -> Path:
     a2.set_yscale("log")
     a2.set_title("Per-move held-out errors (box: quartiles)")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return path

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from microctl.diagnosis.selection import cause_label
+from microctl.util.atomic import write_text_atomic
 from microctl.util.io import to_jsonable, write_json
 
 #: Extra measurement that tells apart causes a single scalar gauge cannot (docs/diagnosis.md).
@@ -149,7 +150,28 @@ def control_line(c: dict) -> str:
     pl = ", ".join(f"{r[key]:.3f}" for r in c["models"]["plain"])
     ex = ", ".join(f"{r[key]:.3f}" for r in c["models"]["extended"])
     return (f"control at {', '.join(f'{t:.3g}' for t in c['targets_um'])} µm: {what} std at the chosen poses "
-            f"plain EAFM [{pl}] µm, extended [{ex}] µm")
+            f"plain EAFM [{pl}] µm, extended [{ex}] µm; verdict: {control_verdict(c)}")
+
+
+#: Relative difference of the std below which ``control_verdict`` calls two controllers alike.
+VERDICT_TOLERANCE = 0.05
+
+
+def control_verdict(c: dict) -> str:
+    """One phrase: is the extended controller's scatter lower than the plain one's at every target?"""
+    key = "true_std_um" if c["truth"] else "predicted_std_um"
+    ratios = [e[key] / p[key] for p, e in zip(c["models"]["plain"], c["models"]["extended"]) if p[key] > 0]
+    if not ratios:
+        return "undetermined (no std to compare)"
+    shown = "/".join(f"{r:.3f}" for r in ratios)
+    if all(r < 1 - VERDICT_TOLERANCE for r in ratios):
+        return f"the extended controller is better (std ratio extended/plain {shown})"
+    if all(r > 1 + VERDICT_TOLERANCE for r in ratios):
+        return f"the plain controller is better (std ratio extended/plain {shown})"
+    if all(abs(r - 1) <= VERDICT_TOLERANCE for r in ratios):
+        return (f"no clear difference (std ratio extended/plain {shown}, within "
+                f"±{VERDICT_TOLERANCE:.0%} at every target)")
+    return f"mixed (std ratio extended/plain {shown}: better at some targets, worse at others)"
 
 
 def control_markdown(c: dict) -> list[str]:
@@ -159,7 +181,9 @@ def control_markdown(c: dict) -> list[str]:
          "one on the AFM with the accepted corrections and a noise model restricted to the diagnosed stick-slip "
          "actuators) drive the default optimal controller (eq. 4) to the same targets in sequence from the zero "
          "state." + (" Scatter and error at the chosen poses from the simulated stage's truth; the oracle is the "
-                     "quietest pose that truly reaches the target." if c["truth"] else
+                     "quietest pose that truly reaches the target exactly (found on a grid), so a chosen pose that "
+                     "misses the target (true error ≠ 0) can be quieter than it: such a true std is marked *, "
+                     "and it is bought with the error beside it." if c["truth"] else
                      " No simulator here: only predictions (the true scatter needs the stage)."), ""]
     head = "| target (µm) | model | q (µm) | predicted std (µm) |"
     sep = "|---|---|---|---|"
@@ -173,7 +197,8 @@ def control_markdown(c: dict) -> list[str]:
             row = (f"| {t:.3g} | {label} | [{', '.join(f'{v:.2f}' for v in r['q_um'])}] | "
                    f"{r['predicted_std_um']:.4f} |")
             if c["truth"]:
-                row += f" {r['true_std_um']:.4f} | {r['true_error_um']:+.4f} | {r['oracle_std_um']:.4f} |"
+                star = "*" if r["true_std_um"] < r["oracle_std_um"] else ""
+                row += f" {r['true_std_um']:.4f}{star} | {r['true_error_um']:+.4f} | {r['oracle_std_um']:.4f} |"
             L.append(row)
     return L + [""]
 
@@ -283,8 +308,8 @@ def write_outputs(diagnosis, out_dir: str | Path, *, figures: bool = True) -> di
     report = to_jsonable(diagnosis.report)
     add_identifiability(report)
     report["figures"] = write_figures(diagnosis, out) if figures else {"files": [], "skipped": "not requested"}
-    (out / "extended.yaml").write_text(diagnosis.extended_config.dump_yaml())
+    write_text_atomic(out / "extended.yaml", diagnosis.extended_config.dump_yaml())
     report["extended_config"] = str(out / "extended.yaml")
     write_json(out / "report.json", report)
-    (out / "report.md").write_text(render_markdown(report))
+    write_text_atomic(out / "report.md", render_markdown(report))
     return report

@@ -20,8 +20,9 @@ from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
 import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
-from microctl.models.training import ResidualModelSettings
+from microctl.models.training import MAX_TRAIN_ROWS, ResidualModelSettings
 from microctl.stage.config import StageConfig, load_stage_config, load_yaml
+from microctl.util.packaged import missing_hint, resolve_config
 from microctl.util.fields import (
     FieldReader,
     read_settings,
@@ -109,7 +110,7 @@ class Training:
     linear_trend: bool = same_setting(ResidualModelSettings, "linear_trend")
     restarts: int = same_setting(ResidualModelSettings, "restarts")
     max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
-    refine_rounds: int = setting(0, lo=0, hi=100)
+    refine_rounds: int = setting(0, lo=0, hi=20)
     refine_moves: int = setting(40, lo=1, hi=MAX_MOVES)
     refine_episode_targets: int = setting(4, lo=1, hi=1000)
     refine_target_range_um: tuple[float, float] | None = None
@@ -267,11 +268,20 @@ class ExperimentConfig:
 # --------------------------------------------------------------------------------------
 
 
-def _section(ck: FieldReader, raw: Mapping, name: str, cls: type, ints: dict, **kw) -> Any:
-    """Parse a section whose fields are all integers (given as name -> minimum)."""
+#: Largest value of each ``oracle`` setting (its work grows with grid², line_points, zooms).
+ORACLE_MAX = {"grid": 201, "line_points": 1001, "zooms": 10, "newton_steps": 50}
+
+#: Most moves an experiment section may ask for (points × trials, targets × trials).
+MAX_EXPERIMENT_MOVES = 20_000
+
+
+def _section(ck: FieldReader, raw: Mapping, name: str, cls: type, ints: dict, hi: dict | None = None,
+             **kw) -> Any:
+    """Parse a section whose fields are all integers (given as name -> minimum; ``hi``: name -> maximum)."""
     d = cls()
+    hi = hi or {}
     sec = ck.mapping(raw.get(name), name, list(ints) + list(kw), none_ok=True)
-    vals = {k: ck.integer(sec.get(k, getattr(d, k)), f"{name}.{k}", lo=lo) for k, lo in ints.items()}
+    vals = {k: ck.integer(sec.get(k, getattr(d, k)), f"{name}.{k}", lo=lo, hi=hi.get(k)) for k, lo in ints.items()}
     for k, parse in kw.items():
         vals[k] = parse(sec.get(k, getattr(d, k)), f"{name}.{k}")
     return cls(**vals)
@@ -318,9 +328,14 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
         rng = ck.interval(tr_raw["refine_target_range_um"], "training.refine_target_range_um")
         _check_in_range(ck, reachable(), "training.refine_target_range_um", rng)
     training = read_settings(ck, tr_raw, "training", Training, refine_target_range_um=rng)
+    rows = training.moves + training.refine_rounds * training.refine_moves
+    if rows > MAX_TRAIN_ROWS:
+        raise ck.fail("training", f"moves + refine_rounds × refine_moves = {rows} training rows; the residual model "
+                      f"is trained on at most {MAX_TRAIN_ROWS} (its cost grows as rows³)")
     controller = read_settings(ck, top.get("controller"), "controller", ControllerSettings)
 
-    oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1})
+    oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1},
+                      hi=ORACLE_MAX)
     absolute, incremental = _read_movements(ck, top, reachable)
 
     return ExperimentConfig(
@@ -390,6 +405,10 @@ def _read_movements(ck: FieldReader, top: Mapping, reachable: Callable[[], tuple
         targets_um=ck.vector(inc.get("targets_um", list(di.targets_um)), "incremental.targets_um"),
         trials=ck.integer(inc.get("trials", di.trials), "incremental.trials", lo=2),
     )
+    for sec, n, what in (("absolute", absolute.points * absolute.trials, "points × trials"),
+                         ("incremental", len(incremental.targets_um) * incremental.trials, "targets × trials")):
+        if n > MAX_EXPERIMENT_MOVES:
+            raise ck.fail(sec, f"{what} = {n} moves per controller; at most {MAX_EXPERIMENT_MOVES} are run")
     if not absolute.enabled and not incremental.enabled:
         raise ck.fail("incremental.enabled", "both experiments are disabled; enable absolute or incremental")
     if incremental.enabled:
@@ -422,8 +441,15 @@ def load_experiment_config(path: str | Path) -> ExperimentConfig:
     ConfigError
         Naming the file and the field path.
     """
-    path = Path(path)
+    given = path
+    path = resolve_config(path, "experiments")
+    if not path.exists():
+        raise ConfigError(f"{given}: cannot read: No such file or directory{missing_hint('experiments')}")
     data = load_yaml(path)
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: expected a YAML mapping with at least 'stage', got {type(data).__name__}")
+    if "backend" in data or isinstance(data.get("stage"), Mapping):
+        raise ConfigError(f"{path}: this is a stage file (it has 'stage:' as a mapping or 'backend:'), not an "
+                          "experiment file; give it to --config of collect/train/solve/diagnose, or name it in an "
+                          "experiment file's 'stage:' (e.g. configs/experiments/paper.yaml)")
     return parse_experiment_config(data, str(path), path.resolve().parent)

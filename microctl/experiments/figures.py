@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import microctl.experiments.controllers as registry
+from microctl.util.atomic import save_figure
 
 FIG5, FIG6 = "fig5_absolute.png", "fig6_incremental.png"
 
@@ -104,6 +105,15 @@ def figure_fig5(absolute: dict, title: str = ""):
     return fig
 
 
+def msse_dashes(k: int, n: int) -> tuple:
+    """Dash pattern of controller ``k`` of ``n``: dashes of 4 points that interleave with the others'.
+
+    Two controllers with the same MSSE draw the same line; interleaved dashes keep both colours
+    visible along it.
+    """
+    return (4.0 * k, (4.0, 4.0 * max(n - 1, 1)))
+
+
 def figure_fig6(incremental: dict, title: str = ""):
     """Fig. 6 analogue from ``results["incremental"]``; returns the matplotlib figure.
 
@@ -129,12 +139,12 @@ def figure_fig6(incremental: dict, title: str = ""):
     for r, names in enumerate([list(ctrls), quiet][:rows]):
         for j, t in enumerate(targets):
             ax = axes[r, j]
-            for name in names:
+            for k, name in enumerate(names):
                 e = np.asarray(ctrls[name]["sse_um"], dtype=float)[:, j]
                 off = registry.style(name).offset
                 ax.plot(trials + off, e, **_marker_kw(name, 5), label=_label(name))
-                ax.plot([0.6 + off, T + 0.4 + off], [ctrls[name]["msse_um"][j]] * 2,
-                        color=registry.style(name).color, lw=1, alpha=0.7)
+                ax.plot([0.6, T + 0.4], [ctrls[name]["msse_um"][j]] * 2, color=registry.style(name).color,
+                        lw=1.4, alpha=0.9, ls=msse_dashes(k, len(names)), label=f"{_label(name)} MSSE")
             ax.axhline(0, color="0.5", lw=0.8)
             ax.set_xticks(trials if T <= 10 else np.linspace(1, T, 5).round().astype(int))
             ax.set_xlim(0.4, T + 0.6)
@@ -145,8 +155,9 @@ def figure_fig6(incremental: dict, title: str = ""):
             if j == 0:
                 ax.set_ylabel("$e_s = t_d - t_f$ (µm)" if r == 0 else "$e_s$ without the AFM (µm)")
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=9,
-               title="markers: one trial each (side by side); line: MSSE", title_fontsize=8)
+    fig.legend(handles, labels, loc="outside lower center", ncol=max(len(ctrls), 1),
+               fontsize=8, title="markers: one trial each (side by side); dashed line: MSSE (equal MSSEs "
+               "interleave their dashes, so none hides another)", title_fontsize=8)
     fig.suptitle(f"{title}Incremental movement (Fig. 6 analogue): steady-state error per trial, {T} trials\n"
                  + (f"top: every controller on one scale; bottom: {zoomed}, zoomed to one scale" if rows == 2
                     else "one scale for every target"), fontsize=10, x=0.02, ha="left")
@@ -178,7 +189,7 @@ def write_figures(out: Path, results: dict, title: str = "") -> list[str]:
         if results.get(key) is None:
             continue
         fig = make(results[key], title)
-        fig.savefig(Path(out) / name, dpi=110)
+        save_figure(fig, Path(out) / name, dpi=110)
         plt.close(fig)
         names.append(name)
     return names

@@ -28,6 +28,7 @@ from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
 from microctl.util import stats
+from microctl.util.atomic import write_text_atomic
 from microctl.util.io import to_jsonable, write_json
 
 #: The paper's Table II (µm, µm²) at 7, 14, 21, 28 µm.
@@ -42,7 +43,7 @@ PAPER_TABLE_II = {
 def write_config(path: Path, cfg: ExperimentConfig) -> None:
     """``config.yaml``: the resolved experiment and the stage config (for reproduction)."""
     doc = {"experiment": cfg.to_dict(), "stage_config": cfg.stage_config.to_dict()}
-    Path(path).write_text(yaml.safe_dump(to_jsonable(doc), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(to_jsonable(doc), sort_keys=False))
 
 
 def _test(fn, *args) -> dict | None:
@@ -441,4 +442,4 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
 def write_outputs(out: Path, cfg: ExperimentConfig, results: dict) -> None:
     """Write results.json and report.md into ``out``."""
     write_json(Path(out) / "results.json", results)
-    (Path(out) / "report.md").write_text(report_markdown(cfg, results))
+    write_text_atomic(Path(out) / "report.md", report_markdown(cfg, results))

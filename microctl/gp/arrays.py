@@ -34,6 +34,20 @@ def check_finite(a: np.ndarray, name: str) -> None:
         raise DataError(f"{name} has a non-finite value ({a[idx]}) at {where} (0-based); NaN and inf are not allowed")
 
 
+#: Largest magnitude of a training value: beyond it the standardisation's squares overflow.
+MAX_ABS_VALUE = 1e150
+
+
+def check_magnitude(a: np.ndarray, name: str) -> None:
+    """DataError naming ``name`` and the first row (and column) with a value beyond :data:`MAX_ABS_VALUE`."""
+    big = np.abs(a) > MAX_ABS_VALUE
+    if big.any():
+        idx = tuple(int(i) for i in np.argwhere(big)[0])
+        where = f"row {idx[0]}" + (f", column {idx[1]}" if len(idx) > 1 else "")
+        raise DataError(f"{name} has the value {a[idx]:.6g} at {where} (0-based); values beyond ±{MAX_ABS_VALUE:g} "
+                        "cannot be standardised (their squares overflow): rescale the column")
+
+
 def validate_training(X: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
     """Check and convert training data; DataError with a clear message otherwise."""
     X = as_float_array(X, "X")
@@ -52,6 +66,8 @@ def validate_training(X: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
         raise DataError(f"{X.shape[0]} training point(s); at least 2 are needed")
     check_finite(X, "X")
     check_finite(y, "y")
+    check_magnitude(X, "X")
+    check_magnitude(y, "y")
     if not float(np.std(y)) > 1e-12 * max(1.0, float(np.max(np.abs(y)))):
         raise DataError(f"y is constant (every value is {y[0]:g}); there is nothing to regress")
     return np.array(X, dtype=np.float64), np.array(y, dtype=np.float64)

@@ -65,7 +65,9 @@ def write_model(model: Any, path: str | Path) -> None:
             arrays[name] = np.asarray(v, dtype=np.float64)
     path = Path(path)
     try:
-        with path.open("wb") as fh:
+        from microctl.util.atomic import atomic_write
+
+        with atomic_write(path, "wb") as fh:
             np.savez(fh, **arrays)
     except OSError as exc:
         raise DataError(f"{path}: cannot write the model file: {exc.strerror or exc}") from None
@@ -259,6 +261,8 @@ def _open_model_file(path: Path) -> Any:
     """
     if path.is_dir():
         raise ValueError("it is a directory; give the .npz file written by `microctl train` or `microctl gp fit`")
+    if path.exists() and not path.is_file():  # a FIFO or device: reading would wait forever
+        raise ValueError("it is not a regular file (a FIFO, socket or device); give the .npz file")
     with path.open("rb") as fh:  # FileNotFoundError: load says "no such model file"
         head = fh.read(64)
     if not head:

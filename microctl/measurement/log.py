@@ -103,6 +103,41 @@ def log_columns(stage: Stage, extra: Sequence[str] = ()) -> list[str]:
     return ["seq", "time_s", *pose_columns(stage), *stage.actuator_names, *prev_columns(stage), stage.tool.name, *extra]
 
 
+#: How :class:`MeasurementLogWriter` opens its file: ``write`` creates or truncates it and writes
+#: rows in place; ``replace`` writes a hidden temporary file beside it and renames it over the
+#: old log when closed (a kill leaves the old log whole); ``append`` adds rows to an existing
+#: log with the same header, continuing its ``seq`` and its clock.
+WRITE_MODES = ("write", "replace", "append")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _append_point(path: Path, columns: Sequence[str]) -> tuple[int, float, int]:
+    """(next seq, last time_s, size) of an existing log to append to; DataError if it cannot be."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"{path}: cannot append: {exc.strerror or exc}") from None
+    lines = data.decode("utf-8", errors="replace").splitlines()
+    header = ",".join(columns)
+    if not lines or lines[0].strip() != header:
+        got = lines[0].strip() if lines else "an empty file"
+        raise DataError(f"{path}: cannot append: its header is '{got[:200]}', this stage writes '{header}'")
+    if not data.endswith(b"\n"):
+        raise DataError(f"{path}: cannot append: the last line is incomplete")
+    if len(lines) == 1:
+        return 0, 0.0, len(data)
+    last = lines[-1].split(",")
+    try:
+        return int(last[0]) + 1, float(last[1]), len(data)
+    except (ValueError, IndexError):
+        raise DataError(f"{path}: cannot append: line {len(lines)} has no valid seq and time_s") from None
+
+
 def _fmt(value: float) -> str:
     return repr(float(value))
 
@@ -120,28 +155,51 @@ class MeasurementLogWriter:
         Additional columns (e.g. ``trial``, ``target_um``, ``controller``), written after ``t``.
     fsync : bool
         Also ``os.fsync`` after each row (on by default; survives a power cut).
+    mode : {"write", "replace", "append"}
+        See :data:`WRITE_MODES` (default ``write``).
     """
 
-    def __init__(self, path: str | Path, stage: Stage, extra_columns: Sequence[str] = (), fsync: bool = True):
+    def __init__(self, path: str | Path, stage: Stage, extra_columns: Sequence[str] = (), fsync: bool = True,
+                 mode: str = "write"):
         self.path = Path(path)
         self.stage = stage
         self.extra_columns = tuple(extra_columns)
         self.columns = log_columns(stage, self.extra_columns)
         if len(set(self.columns)) != len(self.columns):
             raise DataError(f"{self.path}: extra columns {list(self.extra_columns)} clash with the log columns")
+        if mode not in WRITE_MODES:
+            raise ValueError(f"mode must be one of {WRITE_MODES}, got {mode!r}")
         self.fsync = fsync
+        self.mode = mode
+        self._seq0, self._time0, self._size, self.rows = 0, 0.0, 0, 0
+        self._tmp: Path | None = None
+        if mode == "append":
+            self._seq0, self._time0, self._size = _append_point(self.path, self.columns)
         try:
-            self._fh = self.path.open("wb", buffering=0)
+            self._fh = self._open()
         except OSError as exc:
             cls = LogWriteError if exc.errno in _ENVIRONMENT_ERRNOS else DataError
             raise cls(f"{self.path}: cannot write: {exc.strerror or exc}") from None
-        self._size = 0
-        self.rows = 0
+        if mode == "append":
+            return
         try:
             self._write(self.columns, what="the header")
         except LogWriteError:
             self.close()
             raise
+
+    def _open(self):
+        if self.mode == "append":
+            fh = self.path.open("r+b", buffering=0)
+            fh.seek(self._size)
+            return fh
+        if self.mode == "replace":  # the old log stays whole until the new one is complete (close)
+            import tempfile
+
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+            self._tmp = Path(tmp)
+            return os.fdopen(fd, "wb", buffering=0)
+        return self.path.open("wb", buffering=0)
 
     def _write(self, row: Sequence[str], *, what: str) -> None:
         """Append one whole CSV line; on failure cut the file back to its last complete line."""
@@ -197,7 +255,7 @@ class MeasurementLogWriter:
         if unknown:
             raise DataError(f"{self.path}: columns {sorted(unknown)} were not declared as extra columns")
         s_prev = np.asarray(s_prev, dtype=float).reshape(-1)
-        row = [str(self.rows if seq is None else int(seq)), _fmt(m.time_s)]
+        row = [str(self._seq0 + (self.rows if seq is None else int(seq))), _fmt(self._time0 + m.time_s)]
         row += [_fmt(v) for v in np.asarray(m.u).reshape(-1)]
         row += [_fmt(v) for v in np.asarray(m.q_um).reshape(-1)]
         row += [_fmt(v) for v in s_prev]
@@ -207,12 +265,19 @@ class MeasurementLogWriter:
         self.rows += 1
 
     def close(self) -> None:
-        """Close the file (idempotent; every row is already on disk)."""
+        """Close the file (idempotent; every row is already on disk).
+
+        In ``replace`` mode the new log (every completed row) is renamed over the old one here.
+        """
         if not self._fh.closed:
             try:
                 self._fh.close()
             except OSError:
                 pass
+        if self._tmp is not None:
+            tmp, self._tmp = self._tmp, None
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, self.path)
 
     def __enter__(self) -> "MeasurementLogWriter":
         return self
@@ -504,3 +569,4 @@ def _time_rows(time_s: np.ndarray) -> list[ImplausibleRow]:
 def _implausible_error(path: Path | str, r: ImplausibleRow) -> DataError:
     col = f"columns {r.column}" if "," in r.column else f"column '{r.column}'"
     return DataError(f"{path}: row {r.row + 2}, {col}: {r.message}")
+

@@ -68,7 +68,38 @@ def _check_output_scale(model: FittedVHGPR, afm: AnalyticForwardModel, source: s
 def bind_to_stage(model: FittedVHGPR, afm: AnalyticForwardModel) -> FittedVHGPR:
     """Return ``model`` with ``geometry_hash`` and ``x_names`` of the AFM's stage (eq. 3 input)."""
     names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
-    return replace(model, geometry_hash=afm.stage.geometry_hash(), x_names=names, y_name="residual_um")
+    stage = afm.stage
+    binding = {"name": stage.name, "shape_hash": stage.shape_hash(), "physics_hash": stage.physics_hash()}
+    return replace(model, geometry_hash=stage.geometry_hash(), x_names=names, y_name="residual_um",
+                   info={**model.info, "stage": binding})
+
+
+def _binding_mismatch(model: FittedVHGPR, afm: AnalyticForwardModel, source: str) -> tuple[str | None, str | None]:
+    """(error, note) comparing the stage a model was trained for with ``afm``'s.
+
+    ``error``: the geometry hash differs; it says whether only the model corrections differ
+    (e.g. the extended config ``diagnose`` writes) or the geometry itself. ``note``: the
+    geometry matches but the stage's contact physics or name differ (another rig's config).
+    """
+    stage = afm.stage
+    bound = model.info.get("stage") if isinstance(model.info, dict) else None
+    bound = bound if isinstance(bound, dict) else {}
+    if model.geometry_hash != stage.geometry_hash():
+        if bound.get("shape_hash") == stage.shape_hash():
+            return (f"{source}: the residual model was trained for the same geometry with other model corrections "
+                    f"(stage '{bound.get('name')}'; stage.corrections of '{stage.name}' differ, e.g. the extended "
+                    "config of `microctl diagnose`); train a model with this config (`microctl train LOG --config "
+                    "...`)"), None
+        return (f"{source}: the residual model was trained for another stage geometry "
+                f"(geometry_hash {model.geometry_hash[:12]}… ≠ {stage.geometry_hash()[:12]}… of stage "
+                f"'{stage.name}'); retrain it for this stage"), None
+    if bound.get("physics_hash") not in (None, stage.physics_hash()):
+        return None, (f"{source} was trained for stage '{bound.get('name')}', whose contact physics (stiffness, "
+                      f"preload) differ from stage '{stage.name}''s; its correction may not hold here: retrain "
+                      "it with `microctl train` on this rig's log")
+    if bound.get("name") not in (None, stage.name):
+        return None, f"{source} was trained for stage '{bound.get('name')}', used here for stage '{stage.name}'"
+    return None, None
 
 
 @dataclass(frozen=True)
@@ -132,17 +163,17 @@ class EAFM:
         self.afm = afm
         self.model = model
         self.source = source
+        #: A model trained for the same geometry but another stage (physics, name): said, not refused.
+        self.binding_note: str | None = None
         self.n_p, self.n_q, self.n_s = afm.n_p, afm.n_q, afm.n_s
         self.n_x = self.n_s + self.n_p
         if check_geometry:
-            want = afm.stage.geometry_hash()
             if model.geometry_hash is None:
                 raise ConfigError(f"{source}: the residual model is not bound to a stage geometry "
                                   f"(no geometry_hash); train it with `microctl train` for this stage")
-            if model.geometry_hash != want:
-                raise ConfigError(f"{source}: the residual model was trained for another stage geometry "
-                                  f"(geometry_hash {model.geometry_hash[:12]}… ≠ {want[:12]}… of stage "
-                                  f"'{afm.stage.name}'); retrain it for this stage")
+            error, self.binding_note = _binding_mismatch(model, afm, source)
+            if error:
+                raise ConfigError(error)
         if model.n_inputs != self.n_x:
             raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
                               f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")

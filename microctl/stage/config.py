@@ -37,6 +37,7 @@ from microctl.stage.serial_config import (  # noqa: F401  (the serial section's 
     parse_serial,
 )
 from microctl.util.fields import FieldReader
+from microctl.util.packaged import missing_hint, resolve_config
 
 #: Largest condition number accepted for the contact map H R^T J (eq. 10) and the
 #: inverse-kinematics matrix K; beyond it the pose is not determined by the actuators.
@@ -266,8 +267,26 @@ def _parse_actuators(ctx: FieldReader, acts_raw: Any, dof: list[str]) -> list[Ac
             )
         if any(act.name == b.name for b in actuators):
             raise ctx.fail(f"{p}.name", f"actuator name '{act.name}' is used twice")
+        _check_column_name(ctx, act.name, f"{p}.name", dof)
+        for j, b in enumerate(actuators):
+            if np.allclose(act.contact_mm, b.contact_mm, atol=1e-9, rtol=0):
+                raise ctx.fail(f"{p}.contact_mm", f"{list(act.contact_mm)} is the contact point of "
+                               f"stage.actuators[{j}] ('{b.name}'); two balls cannot push at one point")
         actuators.append(act)
     return actuators
+
+
+#: Names a measurement log uses for its own columns (docs/measurement-log.md; the experiment logs'
+#: extra columns): an actuator or the tool may not take them.
+RESERVED_COLUMN_NAMES = ("seq", "time_s", "trial", "target_um", "controller", "point")
+
+
+def _check_column_name(ctx: FieldReader, name: str, field: str, dof: list[str]) -> None:
+    """An actuator's or the tool's name becomes a log column: it must not be one the log already has."""
+    reserved = set(RESERVED_COLUMN_NAMES) | {f"u_{d}" for d in dof}
+    if name in reserved or name.endswith("_prev"):
+        raise ctx.fail(field, f"'{name}' is a measurement-log column name ({', '.join(sorted(reserved))}, and "
+                       "NAME_prev); choose another name")
 
 
 def _parse_tool(ctx: FieldReader, raw: Any, actuators: list[Actuator], dof: list[str]) -> Tool:
@@ -280,6 +299,7 @@ def _parse_tool(ctx: FieldReader, raw: Any, actuators: list[Actuator], dof: list
     )
     if tool.name in {a.name for a in actuators} or tool.name in dof:
         raise ctx.fail("stage.tool.name", f"'{tool.name}' clashes with an actuator or DoF name")
+    _check_column_name(ctx, tool.name, "stage.tool.name", dof)
     return tool
 
 
@@ -441,14 +461,33 @@ _StrictLoader.add_implicit_resolver(
 )
 
 
+#: Most values (scalars, lists, mappings) a YAML document may expand to through its aliases.
+MAX_YAML_VALUES = 1_000_000
+
+
+def _expanded_size(obj: Any, memo: dict) -> int:
+    """How many values ``obj`` holds with every alias expanded (shared objects counted per use)."""
+    if not isinstance(obj, (list, dict)):
+        return 1
+    key = id(obj)
+    if key not in memo:
+        memo[key] = 0  # a cycle (a recursive alias) counts once
+        children = obj.values() if isinstance(obj, dict) else obj
+        memo[key] = 1 + sum(_expanded_size(c, memo) for c in children)
+    return memo[key]
+
+
 def load_yaml(path: str | Path) -> Any:
     """Read a UTF-8 YAML file (a leading BOM is fine), turning every problem into :class:`ConfigError`.
 
     Refused, each with the file and, where it applies, the line and column: an unreadable
-    file or a directory, bytes that are not UTF-8, invalid YAML, a key given twice in one
-    mapping, nesting too deep to read.
+    file or a directory, a FIFO or device, bytes that are not UTF-8, invalid YAML, a key given
+    twice in one mapping, nesting too deep to read, aliases that expand to more than
+    :data:`MAX_YAML_VALUES` values.
     """
     path = Path(path)
+    if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or a device would block or never end
+        raise ConfigError(f"{path}: is not a regular file (a FIFO, socket or device); give a YAML file")
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -463,7 +502,12 @@ def load_yaml(path: str | Path) -> Any:
             "decoded; save the file as UTF-8"
         ) from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        doc = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        size = _expanded_size(doc, {})
+        if size > MAX_YAML_VALUES:
+            raise ConfigError(f"{path}: the YAML expands to {size:.3g} values through its aliases (*name); at most "
+                              f"{MAX_YAML_VALUES} are read (an alias bomb?); write the values out")
+        return doc
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -479,7 +523,8 @@ def load_stage_config(path: str | Path) -> StageConfig:
     Parameters
     ----------
     path : str or Path
-        The file, e.g. ``configs/stage/table1.yaml``.
+        The file, e.g. ``configs/stage/table1.yaml``, or the short name of a packaged stage
+        config (``table1``; :func:`microctl.util.packaged.resolve_config`).
 
     Returns
     -------
@@ -490,5 +535,13 @@ def load_stage_config(path: str | Path) -> StageConfig:
     ConfigError
         Naming the file and the field path.
     """
-    return parse_stage_config(load_yaml(path), source=str(path))
+    resolved = resolve_config(path, "stage")
+    if not resolved.exists():
+        raise ConfigError(f"{path}: cannot read: No such file or directory{missing_hint('stage')}")
+    data = load_yaml(resolved)
+    if isinstance(data, Mapping) and isinstance(data.get("stage"), str) and "backend" not in data:
+        raise ConfigError(f"{path}: this is an experiment file (its 'stage:' names the stage file "
+                          f"'{data['stage']}'), not a stage file; run it with `microctl experiment {path}`, or give "
+                          "--config the stage file it names")
+    return parse_stage_config(data, source=str(path))
 

@@ -164,6 +164,16 @@ class Stage:
         text = json.dumps(payload, sort_keys=True, default=float)
         return hashlib.sha256(text.encode()).hexdigest()
 
+    def shape_hash(self) -> str:
+        """SHA-256 of the geometry alone (DoF, actuators, tool): :meth:`geometry_hash` without the corrections."""
+        payload = {"dof": list(self.dof), "actuators": [asdict(a) for a in self.actuators], "tool": asdict(self.tool)}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True, default=float).encode()).hexdigest()
+
+    def physics_hash(self) -> str:
+        """SHA-256 of the contact physics (stiffness, preload, flexure), which the geometry hash leaves out."""
+        text = json.dumps(asdict(self.physics), sort_keys=True, default=float)
+        return hashlib.sha256(text.encode()).hexdigest()
+
     def to_dict(self) -> dict[str, Any]:
         """The YAML form of the ``stage`` section."""
         out: dict[str, Any] = {

@@ -156,8 +156,9 @@ def _parse_gauge(ctx: FieldReader, raw: Any, p: str, stage: Stage) -> Gauge:
         compiled = re.compile(pattern)
     except (re.error, TypeError) as exc:
         raise ctx.fail(f"{gp}.reply_pattern", f"is not a valid regular expression: {exc}") from None
-    if compiled.groups > 1:
-        raise ctx.fail(f"{gp}.reply_pattern", "must have at most one capture group (the number)")
+    if compiled.groups != 1:
+        raise ctx.fail(f"{gp}.reply_pattern", f"must have exactly one capture group (the number), it has "
+                       f"{compiled.groups}; e.g. {gd.reply_pattern!r}")
     query = ctx.ascii_text(g.get("query", gd.query), f"{gp}.query", what="the gauge query")
     eol = ctx.ascii_text(g.get("eol", gd.eol), f"{gp}.eol", what="the line ending", blank_ok=True, controls_ok=True)
     if not eol.endswith(("\n", "\r")):

@@ -57,7 +57,8 @@ def write_json(path: str | Path, obj: Any) -> None:
     Parameters
     ----------
     path : path
-        The file to write; ``path.tmp`` is used on the way.
+        The file to write; a hidden temporary file beside it is used on the way
+        (:func:`microctl.util.atomic.atomic_write`).
     obj : any
         Converted with :func:`to_jsonable`.
 
@@ -67,11 +68,6 @@ def write_json(path: str | Path, obj: Any) -> None:
         The machine failed (a full disk): the temp file is removed and ``path`` is left as it
         was (the command line reports it in one line, exit status 1).
     """
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        tmp.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n")
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+    from microctl.util.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(to_jsonable(obj), indent=2) + "\n")

@@ -91,6 +91,19 @@ class Table:
         return np.column_stack([self.numeric(c) for c in columns])
 
 
+def _refuse_other_formats(path: Path, text: str) -> None:
+    """DataError for a JSON or YAML file given where a CSV table is expected."""
+    head = text.lstrip()[:1]
+    lines = [ln for ln in text.splitlines()[:50] if ln.strip() and not ln.lstrip().startswith("#")]
+    first = lines[0].strip() if lines else ""
+    if head in ("{", "["):
+        raise DataError(f"{path}: this is JSON (it starts with '{head}'), not a CSV table; expected a header row "
+                        "of column names, then one comma-separated row per line")
+    if first.startswith("---") or (":" in first and "," not in first and first.rstrip().endswith(":")):
+        raise DataError(f"{path}: this looks like YAML ('{first[:40]}'), not a CSV table; a stage or experiment "
+                        "file goes to --config or `microctl experiment`")
+
+
 def read_table(path: str | Path, *, min_rows: int = 1) -> Table:
     """Read a comma-separated file with a header row.
 
@@ -107,6 +120,8 @@ def read_table(path: str | Path, *, min_rows: int = 1) -> Table:
         Unreadable file, empty file, duplicate column names, ragged rows, too few rows.
     """
     path = Path(path)
+    if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or device: reading would block
+        raise DataError(f"{path}: is not a regular file (a FIFO, socket or device); give a CSV file")
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -118,6 +133,7 @@ def read_table(path: str | Path, *, min_rows: int = 1) -> Table:
         raise DataError(
             f"{path}: not a text CSV file: byte 0x{raw[exc.start]:02x} on line {line} is not UTF-8"
         ) from None
+    _refuse_other_formats(path, text)
     reader = csv.reader(io.StringIO(text, newline=""))
     try:
         try:

@@ -180,7 +180,7 @@ def test_collect_cli_prints_the_start_state_and_tare(tmp_path, capsys):
             path = tmp_path / "stage.yaml"
             path.write_text(emu.pointed_at(cfg).dump_yaml())
             out = tmp_path / "log.csv"
-            assert main(["collect", "--config", str(path), "-n", "2", "-o", str(out)]) == 0
+            assert main(["collect", "--config", str(path), "-n", "2", "-o", str(out), "--force"]) == 0
         err = capsys.readouterr().err
         assert expect in err, err
         if gauge:

@@ -227,11 +227,13 @@ def test_environment_oserror_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
     def full(self, *a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(self))
 
-    monkeypatch.setattr(Path, "write_text", full)
+    from microctl.util import atomic
+
+    monkeypatch.setattr(atomic.os, "fsync", full)  # the disk fills while the temp file is written
     with pytest.raises(OSError):
         mio.write_json(target, {"a": 1})
     monkeypatch.undo()
-    assert _json.loads(target.read_text()) == {} and not (tmp_path / "results.json.tmp").exists()
+    assert _json.loads(target.read_text()) == {} and [p.name for p in tmp_path.iterdir()] == ["results.json"]
 
     import microctl.cli.commands.stage as stage_cmd
 

@@ -79,17 +79,17 @@ def test_train_options_and_noise_report(trained, capsys, tmp_path):
     out = tmp_path / "hgp.npz"
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(out), "--noise-model", "hgp",
                "--no-linear-trend", "--restarts", "1"])
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out  # the result is on stdout (issue 22 item 8)
     assert rc == 0 and "noise model hgp" in err
     m = FittedVHGPR.load(out)
     assert m.noise_model == "hgp" and m.f_log_linear_vars is None
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "p.npz"), "--restarts", "1",
                "--noise-model", "physical"])
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out
     assert rc == 0 and "stick-slip std per µm moved" in err and "q4" in err and "SE part" in err
     # the default: the planted log's scatter is uniform (0.05 µm), so the dictionary selects no source
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "d.npz"), "--restarts", "1"])
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out
     assert rc == 0 and "noise model dictionary: no noise source selected among 49 candidates" in err
     assert FittedVHGPR.load(tmp_path / "d.npz").noise_model == "dictionary"
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "x.npz"), "--no-linear-trend",

@@ -266,8 +266,11 @@ def test_out_on_an_old_run_folder_clears_the_previous_run(tmp_path, capsys):
         (out / name).write_text("from the previous run")
     (out / "my_notes.txt").write_text("keep me")
     assert main(["experiment", str(exp), "--out", str(out)]) == 0
-    err = capsys.readouterr().err
+    cap = capsys.readouterr()
+    err = cap.err
     assert "removed the previous run's" in err and "fig5_absolute.png" in err
+    # results on stdout, notes on stderr (issue 22 item 8): `experiment ... > out.txt` captures the table
+    assert "experiment: results in" in cap.out and "MSSE (µm)" in cap.out and "results in" not in err
     assert not (out / "fig5_absolute.png").exists() and not (out / "fig6_incremental.png").exists()
     assert (out / "my_notes.txt").read_text() == "keep me"
     assert json.loads((out / "results.json").read_text())["incremental"]["trials"] == 3

@@ -449,7 +449,7 @@ def test_cli_gp_out_is_required_once(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 def test_cli_input_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     data = tmp_path / "d.csv"
-    _write_csv(data, ["a", "b"], [[1, 5], [2, 5], [3, 5]])
+    _write_csv(data, ["a", "b"], [[1, 5], [2, 5], [3, 5], [4, 5], [5, 5], [6, 5]])  # gp fit needs >= 5 rows
     out = tmp_path / "gp.npz"
     assert main(["gp", "fit", str(data), "--x", "a", "--y", "c", "-o", str(out)]) == 2
     err = capsys.readouterr().err
@@ -458,7 +458,7 @@ def test_cli_input_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     err = capsys.readouterr().err
     assert "d.csv" in err and "y is constant" in err
     bad = tmp_path / "bad.csv"
-    _write_csv(bad, ["a", "b"], [[1, 5], ["x", 6], [3, 7]])
+    _write_csv(bad, ["a", "b"], [[1, 5], ["x", 6], [3, 7], [4, 8], [5, 9], [6, 1]])
     assert main(["gp", "fit", str(bad), "--x", "a", "--y", "b", "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "row 3" in err and "'a'" in err

@@ -189,6 +189,6 @@ def test_full_disk_cuts_partial_row_and_keeps_completed(tmp_path, monkeypatch):
 def test_cli_collect_to_full_device_exit_1(capsys):
     if not Path("/dev/full").exists():
         pytest.skip("no /dev/full on this system")
-    assert main(["collect", "--config", str(STAGE_YAML), "-n", "3", "-o", "/dev/full", "--quiet"]) == 1
+    assert main(["collect", "--config", str(STAGE_YAML), "-n", "3", "-o", "/dev/full", "--force", "--quiet"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "/dev/full: cannot write the header: No space left on device" in err

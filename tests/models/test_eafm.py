@@ -126,8 +126,13 @@ def test_model_file_round_trip(afm, eafm, tmp_path):
 
 def test_geometry_hash_mismatch_refused(afm, eafm, tmp_path):
     path = tmp_path / "other.npz"
-    dataclasses.replace(eafm.model, geometry_hash="0" * 64).save(path)
+    info = {k: v for k, v in eafm.model.info.items() if k != "stage"}  # no record of the geometry alone
+    dataclasses.replace(eafm.model, geometry_hash="0" * 64, info=info).save(path)
     with pytest.raises(ConfigError, match="other.npz.*another stage geometry"):
+        EAFM(afm, path)
+    # the same geometry alone recorded: only the model corrections differ (issue 22 item 5)
+    dataclasses.replace(eafm.model, geometry_hash="0" * 64).save(path)
+    with pytest.raises(ConfigError, match="other.npz.*same geometry with other model corrections"):
         EAFM(afm, path)
     unbound = tmp_path / "unbound.npz"
     dataclasses.replace(eafm.model, geometry_hash=None).save(unbound)

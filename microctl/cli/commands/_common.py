@@ -16,8 +16,8 @@ def add_quiet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="hide progress on stderr")
 
 
-def int_at_least(minimum: int, rule: str):
-    """An argparse type: an integer >= ``minimum``; ``rule`` says what is valid in the error."""
+def int_at_least(minimum: int, rule: str, maximum: int | None = None):
+    """An argparse type: an integer >= ``minimum`` (and <= ``maximum``); ``rule`` says what is valid."""
 
     def parse(text: str) -> int:
         try:
@@ -26,13 +26,18 @@ def int_at_least(minimum: int, rule: str):
             raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"must be {rule}, got {value}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum}, got {value}")
         return value
 
     return parse
 
 
-#: argparse type of ``--seed``: a non-negative integer (what NumPy's generators take).
-seed = int_at_least(0, "a non-negative integer")
+#: Largest ``--seed`` (what every seeded setting accepts: a signed 64-bit integer).
+MAX_SEED = 2**63 - 1
+
+#: argparse type of ``--seed``: a non-negative integer (what NumPy's generators take), at most :data:`MAX_SEED`.
+seed = int_at_least(0, "a non-negative integer", MAX_SEED)
 
 
 def add_seed(parser: argparse.ArgumentParser, help_text: str) -> None:
@@ -47,6 +52,16 @@ def _same_file(a: Path, b: Path) -> bool:
     except OSError:
         pass
     return a.resolve() == b.resolve()
+
+
+def _is_fifo_or_socket(path: Path) -> bool:
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
 
 
 def check_output_file(path: str | Path, flag: str, inputs: Mapping[str, str | Path | None]) -> Path:
@@ -67,6 +82,8 @@ def check_output_file(path: str | Path, flag: str, inputs: Mapping[str, str | Pa
             raise ConfigError(f"{flag} {path}: is {what}; refusing to overwrite an input, choose another file name")
     if path.is_dir():
         raise ConfigError(f"{flag} {path}: is a directory, expected a file name to write")
+    if _is_fifo_or_socket(path):
+        raise ConfigError(f"{flag} {path}: is a FIFO or socket (writing would wait forever); give a file name")
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise ConfigError(f"{flag} {path}: the folder '{parent}' does not exist")

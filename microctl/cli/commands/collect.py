@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
 from microctl.backends import make_backend
 from microctl.backends.collect import run_collect
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
+from microctl.errors import ConfigError
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, training_moves
 from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.config import load_stage_config
+from microctl.util.atomic import output_lock
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,9 +32,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_seed(p, "seed of the move design (default 0)")
     p.add_argument("--design", choices=DESIGNS, default=DEFAULT_DESIGN,
                    help=f"training design (default {DEFAULT_DESIGN}; see docs/experiments.md)")
-    p.add_argument("-o", "--out", required=True, metavar="LOG.csv", help="measurement log to write")
+    p.add_argument("-o", "--out", required=True, metavar="LOG.csv",
+                   help="measurement log to write (an existing one is refused unless --force or --append)")
+    grp = p.add_mutually_exclusive_group()
+    grp.add_argument("--force", action="store_true",
+                     help="replace an existing log (the old one stays whole until the new one is complete)")
+    grp.add_argument("--append", action="store_true",
+                     help="add the moves to an existing log of this stage (seq and time_s continue)")
     add_quiet(p)
     p.set_defaults(func=_run)
+
+
+def _write_mode(args: argparse.Namespace) -> str:
+    """How the log is opened: a new file, ``--force`` over an old one, ``--append`` to it."""
+    exists = os.path.lexists(args.out)
+    if args.append:
+        if not exists:
+            raise ConfigError(f"-o {args.out}: --append needs an existing log, and there is none; drop --append")
+        if not Path(args.out).is_file():
+            raise ConfigError(f"-o {args.out}: is not a regular file; --append needs a measurement log")
+        return "append"
+    if exists:
+        if not args.force:
+            raise ConfigError(f"-o {args.out}: the file exists; refusing to overwrite it (give --force to replace it, "
+                              "--append to add the moves to it, or choose another file name)")
+        return "replace" if Path(args.out).is_file() else "write"
+    return "write"
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -39,13 +66,14 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     check_output_file(args.out, "-o", {"the stage config --config": args.config})
     config = load_stage_config(args.config)
-    afm = AnalyticForwardModel(config.stage)
-    moves = training_moves(afm, args.design, args.n, args.seed)
-    with make_backend(config) as backend:
-        for note in backend.notes:
-            if not args.quiet:
-                print(f"collect: {note}", file=sys.stderr)
-        n = run_collect(backend, moves, args.out, quiet=args.quiet)
-    if not args.quiet:
-        print(f"collect: {n} moves on the {config.backend.kind} backend written to {args.out}", file=sys.stderr)
+    with output_lock(args.out, "-o"):  # a second collect to the same file is refused, not interleaved
+        mode = _write_mode(args)
+        afm = AnalyticForwardModel(config.stage)
+        moves = training_moves(afm, args.design, args.n, args.seed)
+        with make_backend(config) as backend:
+            for note in backend.notes:
+                if not args.quiet:
+                    print(f"collect: {note}", file=sys.stderr)
+            n = run_collect(backend, moves, args.out, quiet=args.quiet, mode=mode)
+    print(f"collect: {n} moves on the {config.backend.kind} backend written to {args.out}")  # the result: stdout
     return 0

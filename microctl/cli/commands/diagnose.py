@@ -41,10 +41,19 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_stage_config(args.config)
     # rows no stage can have produced (a corrupt cell) are outliers to name, not a reason to stop
     data, set_aside, implausible = read_for_diagnosis(args.log, cfg.stage)
+    _check_enough_plausible(args, cfg, set_aside, implausible)
+    from microctl.measurement.scale import check_spread
+    from microctl.models.afm import AnalyticForwardModel
+
+    keep = ~set_aside
+    check_spread(args.log, data.t[keep], data.u[keep], AnalyticForwardModel(cfg.stage))  # mm, nm, another stage
     if implausible and not args.quiet:
-        for r in implausible:
+        for r in implausible[:NOTES_SHOWN]:
             print(f"diagnose: note: {args.log}: row {r.row + 2}, {r.column}: {r.message}; set aside as an outlier",
                   file=sys.stderr)
+        if len(implausible) > NOTES_SHOWN:
+            print(f"diagnose: note: {args.log}: {len(implausible) - NOTES_SHOWN} more rows set aside as outliers "
+                  "(report.md lists them)", file=sys.stderr)
     holdout = None
     if args.holdout:
         holdout = data_from_log(read_log(args.holdout, cfg.stage), cfg.stage)
@@ -60,5 +69,30 @@ def _run(args: argparse.Namespace) -> int:
 
         for line in summary_lines(report):
             print(line)
-        print(f"wrote {out / 'report.json'}, {out / 'report.md'}, {out / 'extended.yaml'}", file=sys.stdout)
+        figures = [out / name for name in report.get("figures", {}).get("files", [])]
+        print("wrote " + ", ".join(str(p) for p in [out / "report.json", out / "report.md", out / "extended.yaml",
+                                                    *figures]))
     return 0
+
+
+#: How many implausible rows ``diagnose`` names one by one on stderr.
+NOTES_SHOWN = 5
+
+
+def _check_enough_plausible(args: argparse.Namespace, cfg, set_aside, implausible) -> None:
+    """Refuse (DataError, exit 2) a log with fewer plausible rows than a diagnosis needs.
+
+    Such a log is not of this stage: another geometry, or readings in other units.
+    """
+    from microctl.diagnosis.data import MIN_ROWS
+    from microctl.errors import DataError
+
+    kept = int(len(set_aside) - set_aside.sum())
+    if kept >= MIN_ROWS:
+        return
+    first = implausible[0] if implausible else None
+    example = f" (e.g. row {first.row + 2}, {first.column}: {first.message})" if first is not None else ""
+    raise DataError(
+        f"{args.log}: {len(implausible)} of {len(set_aside)} rows are implausible for the stage '{cfg.stage.name}' of "
+        f"{args.config}{example}; {kept} remain and a diagnosis needs at least {MIN_ROWS}: is it a log of another "
+        "stage, or in other units (t and q in µm)?")

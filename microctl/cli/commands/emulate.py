@@ -46,6 +46,17 @@ def _parse_ports(text: str) -> list[int]:
     return ports
 
 
+def _check_distinct(ports: list[int], where: str) -> None:
+    """Each device needs its own port (0: any free one)."""
+    if not ports:
+        raise ConfigError(f"{where}: no port to serve on; give one per device (controllers, then the gauge)")
+    seen = [p for p in ports if p != 0]
+    for p in seen:
+        if seen.count(p) > 1:
+            raise ConfigError(f"{where}: port {p} is given {seen.count(p)} times; each device (controllers, then "
+                              "the gauge) needs its own port (0: any free one)")
+
+
 def _parse_start_q(text: str | None) -> list[float] | None:
     if text is None:
         return None
@@ -59,6 +70,7 @@ def _parse_start_q(text: str | None) -> list[float] | None:
 def _run(args: argparse.Namespace, max_seconds: float | None = None) -> int:
     config = load_stage_config(args.config)
     ports = _parse_ports(args.ports) if args.ports else default_ports(config)
+    _check_distinct(ports, "--ports" if args.ports else f"{args.config}: the devices' socket:// URLs")
     emu = Emulator(config, host=args.host, ports=ports, seed=args.seed, start_q_um=_parse_start_q(args.start_q))
     bound = emu.start()
     try:
@@ -69,8 +81,6 @@ def _run(args: argparse.Namespace, max_seconds: float | None = None) -> int:
         t0 = time.monotonic()
         while max_seconds is None or time.monotonic() - t0 < max_seconds:
             time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
-    finally:
+    finally:  # Ctrl-C: the ports are closed, then main() says "microctl: interrupted", exit 130
         emu.stop()
     return 0

@@ -84,21 +84,25 @@ def _run(args: argparse.Namespace) -> int:
     if removed and not args.quiet:
         print(f"experiment: removed the previous run's {', '.join(removed)} from {out}", file=sys.stderr)
     res = run_experiment(cfg, out, quiet=args.quiet)
-    if not args.quiet:
-        inc = res.get("incremental")
-        if inc is not None:
-            from microctl.experiments.controllers import label as label_of  # as in report.md, the figures
-
-            w = max(len("target (µm)"), *(len(label_of(n)) + len(" VSSE (µm²)") for n in inc["controllers"]))
-            print(f"{'target (µm)':{w}s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]), file=sys.stderr)
-            for name, c in inc["controllers"].items():
-                label = label_of(name)
-                print(f"{label + ' MSSE (µm)':{w}s}" + "".join(f"{v:9.3f}" for v in c["msse_um"]), file=sys.stderr)
-                print(f"{label + ' VSSE (µm²)':{w}s}" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]), file=sys.stderr)
-        bars = res.get("bars", {})
-        if bars:
-            failed = [k for k, b in bars.items() if not b["passed"]]
-            print(f"experiment: bars met {len(bars) - len(failed)}/{len(bars)}"
-                  + (f" (not met: {', '.join(failed)})" if failed else ""), file=sys.stderr)
-        print(f"experiment: results in {out} ({res['timings_s']['total']:.1f} s)", file=sys.stderr)
+    _print_summary(res, out)  # the result on stdout (progress and notes on stderr), also with --quiet
     return 0
+
+
+def _print_summary(res: dict, out: Path) -> None:
+    """The incremental table, the bars met and where the results are, on stdout."""
+    inc = res.get("incremental")
+    if inc is not None:
+        from microctl.experiments.controllers import label as label_of  # as in report.md, the figures
+
+        w = max(len("target (µm)"), *(len(label_of(n)) + len(" VSSE (µm²)") for n in inc["controllers"]))
+        print(f"{'target (µm)':{w}s}" + "".join(f"{t:>9g}" for t in inc["targets_um"]))
+        for name, c in inc["controllers"].items():
+            label = label_of(name)
+            print(f"{label + ' MSSE (µm)':{w}s}" + "".join(f"{v:9.3f}" for v in c["msse_um"]))
+            print(f"{label + ' VSSE (µm²)':{w}s}" + "".join(f"{v:9.3f}" for v in c["vsse_um2"]))
+    bars = res.get("bars", {})
+    if bars:
+        failed = [k for k, b in bars.items() if not b["passed"]]
+        print(f"experiment: bars met {len(bars) - len(failed)}/{len(bars)}"
+              + (f" (not met: {', '.join(failed)})" if failed else ""))
+    print(f"experiment: results in {out} ({res['timings_s']['total']:.1f} s)")

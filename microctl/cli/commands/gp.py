@@ -24,6 +24,7 @@ from microctl.cli.commands._common import (
     int_at_least,
 )
 from microctl.errors import DataError, MicroctlError
+from microctl.util.atomic import write_text_atomic
 from microctl.util.progress import Progress
 from microctl.util.tabular import read_table
 
@@ -44,8 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("--x", required=True, metavar="COL[,COL..]", help="input column(s), comma-separated")
     fit.add_argument("--y", required=True, metavar="COL", help="output column")
     _add_out(fit, "GP.npz", "model file to write")
-    fit.add_argument("--restarts", type=int_at_least(1, "at least 1"), default=2, metavar="N",
-                     help="optimisation runs in total, the first from a homoscedastic GP (default 2)")
+    fit.add_argument("--restarts", type=int_at_least(1, "at least 1", MAX_RESTARTS), default=2, metavar="N",
+                     help=f"optimisation runs in total, the first from a homoscedastic GP (default 2, at most "
+                     f"{MAX_RESTARTS})")
     add_seed(fit, "seed of the restarts (default 0)")
     fit.add_argument("--bias", action="store_true", help="add a constant term to both kernels")
     add_quiet(fit)
@@ -73,6 +75,13 @@ def _missing_subcommand(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
+#: Fewest rows ``gp fit`` accepts (a GP's hyperparameters cannot be learned from fewer; as ``train``).
+MIN_FIT_ROWS = 5
+
+#: Most optimisation runs ``gp fit --restarts`` may ask for (as ``train --restarts``).
+MAX_RESTARTS = 100
+
+
 def _fit(args: argparse.Namespace) -> int:
     from microctl.gp.vhgpr import VHGPR
 
@@ -85,7 +94,12 @@ def _fit(args: argparse.Namespace) -> int:
     if y_col in x_cols:
         raise DataError(f"--y '{y_col}' is also an input column in --x")
     check_output_file(args.out, "-o", {"the data file DATA.csv": args.data})
-    table = read_table(args.data, min_rows=2)
+    table = read_table(args.data, min_rows=MIN_FIT_ROWS)
+    from microctl.models.training import MAX_TRAIN_ROWS
+
+    if len(table.rows) > MAX_TRAIN_ROWS:
+        raise DataError(f"{args.data}: {len(table.rows)} rows; the VHGPR is fitted to at most {MAX_TRAIN_ROWS} (its "
+                        "cost grows as rows³); fit a subsample")
     X = table.numeric_columns(x_cols)
     y = table.numeric(y_col)
     with Progress(1, "gp fit", quiet=args.quiet) as progress:
@@ -116,7 +130,7 @@ def _predict(args: argparse.Namespace) -> int:
     pred = model.predict(X)
     text = "mean,var\n" + "".join(f"{float(m)!r},{float(v)!r}\n" for m, v in zip(pred.y_mean, pred.y_var))
     try:
-        args.out.write_text(text)
+        write_text_atomic(args.out, text)
     except OSError as exc:  # the folder was checked: this is the machine (full disk, I/O error), exit 1
         raise MicroctlError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
     return 0

@@ -16,7 +16,7 @@ from microctl.control.controller import (
 )
 from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.control.sequence_objectives import SEQUENCE_OBJECTIVES
-from microctl.errors import ConfigError
+from microctl.errors import ConfigError, UnreachableTargetError
 from microctl.models.afm import (
     T_PLAUSIBLE_FACTOR,
     AnalyticForwardModel,
@@ -118,17 +118,41 @@ def _run(args: argparse.Namespace) -> int:
     if targets is None and not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
     eafm = EAFM(afm, args.model)
+    if eafm.binding_note:
+        print(f"solve: note: {eafm.binding_note}", file=sys.stderr)
     settings = ControllerSettings(r_e=args.r_e, kappa=args.kappa, sequence_objective=args.sequence_objective)
     base_ctrl = AFMController(afm, settings, reporter=eafm)
-    if targets is not None:
-        return _run_sequence(args, afm, eafm, settings, base_ctrl, targets, state)
-    res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
+    _refuse_absurd_targets(afm, [args.target] if targets is None else targets)
+    try:
+        if targets is not None:
+            return _run_sequence(args, afm, eafm, settings, base_ctrl, targets, state)
+        res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
+    except UnreachableTargetError as exc:  # one range, rounded as `stage show` rounds it
+        raise UnreachableTargetError(_rounded(str(exc))) from None
     base = res.baseline
     if args.json:
         print_json(_step_dict(afm, eafm, settings, res, base))
         return 0
     _print_single(afm, settings, eafm, res, base, state)
     return 0
+
+
+def _rounded(message: str) -> str:
+    """``message`` with every number of more than 4 decimals rounded to 4 (as ``stage show`` prints)."""
+    import re
+
+    return re.sub(r"-?\d+\.\d{5,}(?:e[-+]?\d+)?", lambda m: f"{float(m.group(0)):.4f}", message)
+
+
+def _refuse_absurd_targets(afm: AnalyticForwardModel, targets: list[float]) -> None:
+    """UnreachableTargetError, before any solve, for a target beyond what a log of this stage may hold."""
+    bound = plausible_t_bound_um(afm.stage)
+    for t in targets:
+        if abs(t) > bound:
+            lo, hi = afm.t_range()
+            raise UnreachableTargetError(
+                f"target {t:g} µm is far outside what stage '{afm.stage.name}' reaches (the AFM: [{lo:.4f}, "
+                f"{hi:.4f}] µm from the zero state; `microctl stage show`)")
 
 
 def _step_dict(afm: AnalyticForwardModel, eafm: EAFM, settings: ControllerSettings, res, base) -> dict:

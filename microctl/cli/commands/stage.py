@@ -73,5 +73,6 @@ def _show(args: argparse.Namespace) -> int:
         print(f"{d:>6} [{a:9.4f}, {b:9.4f}] {u}")
     print("actuator ranges (µm): " + ", ".join(f"{n} {r[0]:g}..{r[1]:g}" for n, r in zip(acts, info["actuator_range_um"])))
     lo, hi = info["t_range_um"]
-    print(f"\nreachable {info['output']}: [{lo:.4f}, {hi:.4f}] µm")
+    print(f"\nreachable {info['output']}: [{lo:.4f}, {hi:.4f}] µm (the AFM's, from the zero state; with a trained "
+          "model `solve` reports the EAFM's range, which adds the model's correction)")
     return 0

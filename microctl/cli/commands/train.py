@@ -7,10 +7,12 @@ import sys
 import time
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
-from microctl.errors import ConfigError
+from microctl.errors import ConfigError, DataError
 from microctl.measurement.log import read_log
+from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
+    MAX_TRAIN_ROWS,
     NOISE_MODELS,
     ResidualModelSettings,
     noise_summary,
@@ -63,6 +65,10 @@ def _run(args: argparse.Namespace) -> int:
     config = load_stage_config(args.config)
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
+    check_reading_scale(log, afm)  # readings in mm, not µm, would train a model of nothing
+    if len(log) > MAX_TRAIN_ROWS:
+        raise DataError(f"{args.log}: {len(log)} rows; a residual model is trained on at most {MAX_TRAIN_ROWS} "
+                        "(its cost grows as rows³); train on a subsample of the log")
     data = residual_dataset(log, afm)
     note = afm.dynamic_corrections_note()
     if note:
@@ -70,19 +76,21 @@ def _run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if not args.quiet and sys.stderr.isatty():
         print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
-    model = train_residual_model(data, afm, settings)
+    try:
+        model = train_residual_model(data, afm, settings)
+    except DataError as exc:  # e.g. "y is constant": say which file
+        raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
     model.save(args.out)
-    if not args.quiet:
-        print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
-              f"model for stage '{config.stage.name}' written to {args.out}", file=sys.stderr)
-        print(f"train: {describe_noise(noise_summary(model, afm))}", file=sys.stderr)
-        sel = model.info.get("se_selection")
-        if sel is not None:
-            print(f"train: mean correction: affine trend in u"
-                  + (" plus an SE part" if sel["kept_se"] else "")
-                  + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
-                  f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})",
-                  file=sys.stderr)
+    # the result on stdout (progress and notes go to stderr): shown also with --quiet
+    print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
+          f"model for stage '{config.stage.name}' written to {args.out}")
+    print(f"train: {describe_noise(noise_summary(model, afm))}")
+    sel = model.info.get("se_selection")
+    if sel is not None:
+        print("train: mean correction: affine trend in u"
+              + (" plus an SE part" if sel["kept_se"] else "")
+              + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
+              f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})")
     return 0
 
 
