@@ -250,12 +250,39 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     record = {"selected": names, "gains_nats": [float(g) for g in sel.gains],
               "p_adjusted": [float(p) for p in sel.p_values], "alpha": SELECTION_ALPHA,
               "candidates": len(cands.names) + 1}
-    if not names:  # the constant prior mean, under the dictionary's name (it chose no source)
-        model = replace(_fit(data, afm, st, None, "hgp", max_time), noise_model_name="dictionary")
-    else:
-        feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
-        model = _fit(data, afm, st, feats, "dictionary", max_time)
+    model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time)
+    # a source the fit inside the bound switches off (its share of the prior variance below
+    # PRUNE_SHARE at every training move) is not a source of this stage: refit without it
+    keep = _effective_sources(model, data.X) if names else []
+    if len(keep) < len(names):
+        record["dropped_in_fit"] = [names[j] for j in range(len(names)) if j not in keep]
+        record["selected"] = [names[j] for j in keep]
+        model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
+                              [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
+                              max_time)
     return replace(model, info={**model.info, "noise_selection": record})
+
+
+#: a selected source whose fitted share of g's prior variance stays below this at every training
+#: move is dropped (the fit inside the bound switched it off; keeping it would only name it)
+PRUNE_SHARE = 1e-3
+
+
+def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time) -> FittedVHGPR:
+    """The residual model with exactly the given sources as g's prior mean (none: the constant)."""
+    if not names:  # the constant prior mean, under the dictionary's name (it chose no source)
+        return replace(_fit(data, afm, st, None, "hgp", max_time), noise_model_name="dictionary")
+    feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
+    return _fit(data, afm, st, feats, "dictionary", max_time)
+
+
+def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:
+    """Indices of the sources whose share ``c_j phi_j(x) / V(x)`` of the fitted prior variance
+    (:mod:`microctl.gp.noise_prior` eq. 1) reaches :data:`PRUNE_SHARE` at some row of X."""
+    prior = model.g_prior_mean
+    D = prior.design(X)
+    share = D * prior.coef / (D @ prior.coef)[:, None]
+    return [j for j in range(prior.p) if float(np.max(share[:, j + 1])) >= PRUNE_SHARE]
 
 
 def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
