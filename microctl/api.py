@@ -41,7 +41,7 @@ from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
 
 __all__ = [
-    "Stage", "load_stage", "read_measurements", "train", "Controller", "ControllerSettings", "ControlResult",
+    "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
     "MoveRecord", "Operator", "MOVE_LOG_COLUMNS",
 ]
 
@@ -115,9 +115,11 @@ class Stage:
                                   + (f"; unknown {', '.join(map(str, unknown))}" if unknown else ""))
             state = [state[n] for n in names]
         try:
-            s = np.asarray(state, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            raise ConfigError(f"state: {state!r} is not a list of {len(names)} numbers ({', '.join(names)})") from None
+            s = np.asarray(state, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            s = None
+        if s is None or s.ndim != 1:
+            raise ConfigError(f"state: {str(state)[:200]} is not a list of {len(names)} numbers ({', '.join(names)})")
         if s.size != len(names):
             raise ConfigError(f"state: {s.size} value(s), expected {len(names)} ({', '.join(names)})")
         if not np.all(np.isfinite(s)):
@@ -155,6 +157,41 @@ def load_stage(path: str | Path) -> Stage:
 def read_measurements(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLog:
     """Read and validate a measurement log (docs/measurement-log.md) of ``stage``; DataError naming row and column."""
     return read_log(path, stage.config.stage, min_rows=min_rows)
+
+
+def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str = "covering",
+            backend: Any | None = None) -> int:
+    """Run ``n`` designed training moves on the stage's backend and write them as a measurement log (``microctl collect``).
+
+    Parameters
+    ----------
+    stage : Stage
+    n : int
+        Number of moves (>= 1).
+    out : path
+        The log (overwritten).
+    seed : int
+        Seed of the move design.
+    design : str
+        ``covering`` (default) or ``space_filling`` (:mod:`microctl.measurement.design`).
+    backend : StageBackend, optional
+        Default: :meth:`Stage.open_backend` (opened and closed here).
+
+    Returns
+    -------
+    int
+        Moves written.
+    """
+    from microctl.backends.collect import run_collect
+    from microctl.measurement.design import training_moves
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
+    moves = training_moves(stage.afm, design, int(n), seed)
+    if backend is not None:
+        return run_collect(backend, moves, out, quiet=True)
+    with stage.open_backend() as b:
+        return run_collect(b, moves, out, quiet=True)
 
 
 def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | None = None,
