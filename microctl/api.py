@@ -129,11 +129,18 @@ class Stage:
             if not lo <= q <= hi:
                 raise ConfigError(f"state: {a.name} = {q:g} µm is beyond the actuator's hardware limit "
                                   f"[{lo:g}, {hi:g}] µm; no stage can be there")
-        t_max = plausible_t_bound_um(self.config.stage)
+        t_max = self._t_bound()
         if abs(s[0]) > t_max:
             raise ConfigError(f"state: {names[0]} = {s[0]:g} µm is implausible: the stage reaches at most "
                               f"|t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm")
         return s
+
+    def _t_bound(self) -> float:
+        """The bound on |t| a measurement log has (computed once: it builds a model of the stage)."""
+        cache = self.__dict__.setdefault("_cache", {})
+        if "t_bound" not in cache:
+            cache["t_bound"] = plausible_t_bound_um(self.config.stage)
+        return cache["t_bound"]
 
     def open_backend(self, **kwargs: Any):
         """The backend the stage YAML names, connected (a :class:`~microctl.backends.base.StageBackend`).
