@@ -185,12 +185,14 @@ class FastSQP:
         nu = 2.0 * abs(lam) + 1.0
         merit0 = J / jref + nu * abs(t - target)
         slope = g @ d - nu * abs(t - target)  # directional derivative of the merit (a'd = -c)
-        noise = 1e-12 * max(1.0, abs(merit0))  # differences below this are round-off
+        # differences below this are round-off (of J, and of t at the constraint's tolerance)
+        noise = 1e-12 * max(1.0, abs(merit0)) + nu * 1e-2 * self.constraint_tol
+        polish = np.max(np.abs(d)) <= 1e-7 * (1.0 + np.max(np.abs(u)))  # a last correction: taken whole
         alpha = 1.0
         for _ in range(12):
             un = u + alpha * d
             Jn, gJn, tn, gtn, Hn = self._eval(un, s, lam * jref)
-            if Jn / jref + nu * abs(tn - target) <= merit0 + 1e-4 * alpha * min(slope, 0.0) + noise:
+            if polish or Jn / jref + nu * abs(tn - target) <= merit0 + 1e-4 * alpha * min(slope, 0.0) + noise:
                 return un, Jn, gJn, tn, gtn, Hn
             alpha *= 0.5
         return un, Jn, gJn, tn, gtn, Hn
