@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import signal
 import threading
 from dataclasses import dataclass, replace
@@ -42,7 +43,7 @@ from microctl.stage.config import StageConfig, load_stage_config
 
 __all__ = [
     "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
-    "MoveRecord", "Operator", "MOVE_LOG_COLUMNS",
+    "MoveRecord", "Operator", "Learner", "MOVE_LOG_COLUMNS",
 ]
 
 #: Extra columns of a log that ``Operator`` creates (the measurement-log contract allows extra
@@ -516,3 +517,69 @@ class Operator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Learner:
+    """Folds the moves an :class:`Operator` logs into the model: a refit every ``every`` moves.
+
+    Each refit trains on the whole log (:func:`train`, seeded) and writes a new, versioned model
+    file beside the original, ``MODEL.v1.npz``, ``MODEL.v2.npz``, ..., never overwriting one; a
+    line per version in ``MODEL.versions.jsonl`` records the log rows it was trained on (count
+    and SHA-256 of those lines), the seed and restarts, so ``head -n ROWS+1 LOG.csv`` and
+    ``microctl train`` reproduce it. The controller then uses the new version.
+
+    Parameters
+    ----------
+    operator : Operator
+        With a log.
+    model : path
+        The model file the controller started from.
+    every : int
+        Moves between refits (>= 1).
+    restarts, seed : int
+        Of each refit.
+    """
+
+    def __init__(self, operator: Operator, model: str | Path, every: int = 50, restarts: int = 1, seed: int = 0):
+        if operator.log_path is None:
+            raise ConfigError("learning needs a measurement log the moves are appended to")
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(f"every: expected a number of moves >= 1, got {every!r}")
+        self.operator, self.model, self.every = operator, Path(model), every
+        self.restarts, self.seed, self._since = restarts, seed, 0
+        self.manifest = self.model.with_name(f"{self.model.stem}.versions.jsonl")
+
+    def next_version(self) -> int:
+        """One past the largest version file beside the model (1 when there is none)."""
+        found = [int(m.group(1)) for f in self.model.parent.glob(f"{self.model.stem}.v*.npz")
+                 if (m := re.fullmatch(rf"{re.escape(self.model.stem)}\.v(\d+)\.npz", f.name))]
+        return max(found, default=0) + 1
+
+    def after_move(self) -> Path | None:
+        """Count a move; refit when ``every`` have been made since the last (the new file, else None)."""
+        self._since += 1
+        return self.refit() if self._since >= self.every else None
+
+    def refit(self) -> Path:
+        """Train on the log as it is now, write the next version, switch the controller to it."""
+        import hashlib
+        import json
+        import time
+
+        path = self.operator.log_path
+        raw = path.read_bytes()
+        log = read_measurements(path, self.operator.stage, min_rows=5)
+        version = self.next_version()
+        out = self.model.with_name(f"{self.model.stem}.v{version}.npz")
+        train(log, self.operator.stage, out=out, restarts=self.restarts, seed=self.seed)
+        entry = {"version": version, "model": out.name, "log": str(path), "rows": len(log),
+                 "log_sha256": hashlib.sha256(raw).hexdigest(), "restarts": self.restarts, "seed": self.seed,
+                 "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                 "reproduce": f"head -n {len(log) + 1} {path} > rows.csv && microctl train rows.csv --config STAGE.yaml "
+                              f"-o {out.name} --restarts {self.restarts} --seed {self.seed}"}
+        with self.manifest.open("a", encoding="utf-8") as fh:
+            fh.write(json.dumps(entry) + "\n")
+        self.operator.controller.reload(out)
+        self._since = 0
+        return out
+

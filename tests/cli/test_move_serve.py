@@ -330,3 +330,34 @@ def test_serve_process_survives_malformed_input(trained, tmp_path):
     resp = [json.loads(line) for line in r.stdout.splitlines()]
     assert len(resp) == 62 and resp[-2]["ok"] and resp[-1]["result"]["moves"] == 1
     assert len(read_log(tmp_path / "s.csv", stage.config.stage)) == 1
+
+
+def test_move_learn_refits_into_versioned_model_files(trained, tmp_path, capsys):
+    """--learn --refit-every 3: after moves 3 and 6 a refit on the whole log, each a new version whose
+    manifest line names the rows it was trained on; retraining those rows reproduces it."""
+    stage, train_log, model0 = trained
+    model = tmp_path / "model.npz"
+    model.write_bytes(model0.read_bytes())
+    log = tmp_path / "learn.csv"
+    log.write_bytes(train_log.read_bytes())
+    assert main(["move", "--config", str(CONFIG), "--model", str(model), "--targets", "3,6,9,12,15,18,21",
+                 "--log", str(log), "--learn", "--refit-every", "3"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("refit on the log's") == 2
+    v1, v2 = tmp_path / "model.v1.npz", tmp_path / "model.v2.npz"
+    assert v1.is_file() and v2.is_file() and not (tmp_path / "model.v3.npz").exists()
+    assert model.read_bytes() == model0.read_bytes()  # the original is never overwritten
+    entries = [json.loads(line) for line in (tmp_path / "model.versions.jsonl").read_text().splitlines()]
+    assert [(e["version"], e["rows"]) for e in entries] == [(1, 43), (2, 46)]
+    from microctl.gp.vhgpr import FittedVHGPR
+
+    assert FittedVHGPR.load(v1).X.shape[0] == 43 and FittedVHGPR.load(v2).X.shape[0] == 46
+    assert len(read_log(log, stage.config.stage)) == 47
+    rows = tmp_path / "rows.csv"
+    rows.write_text("".join(log.read_text().splitlines(keepends=True)[: 46 + 1]))
+    import hashlib
+
+    assert hashlib.sha256(rows.read_bytes()).hexdigest() == entries[1]["log_sha256"]
+    again = api.train(rows, stage, restarts=entries[1]["restarts"], seed=entries[1]["seed"])
+    np.testing.assert_allclose(again.predict(again.X[:5]).f_mean, FittedVHGPR.load(v2).predict(again.X[:5]).f_mean,
+                               rtol=1e-9)

@@ -7,7 +7,7 @@ import json
 import math
 import sys
 
-from microctl.cli.commands._common import add_quiet
+from microctl.cli.commands._common import add_quiet, int_at_least
 from microctl.errors import ConfigError
 
 
@@ -32,6 +32,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="measurement log the moves are appended to (created if missing)")
     p.add_argument("--r-e", default=None, metavar="R", help="noise summary r_e of eq. 4 (default: as `solve`)")
     p.add_argument("--kappa", type=float, default=None, help="standard normal quantile of noise_quantile")
+    p.add_argument("--learn", action="store_true",
+                   help="fold the moves into the model: every --refit-every moves, refit on the whole log and "
+                   "continue with the new model, written as a new version MODEL.vK.npz beside --model (recorded "
+                   "in MODEL.versions.jsonl with the log rows it was trained on)")
+    p.add_argument("--refit-every", type=int_at_least(1, "at least 1"), default=50, metavar="N",
+                   help="moves between refits with --learn (default 50)")
     p.add_argument("--json", action="store_true", help="print one JSON object per move on stdout (JSON lines)")
     add_quiet(p)
     p.set_defaults(func=_run)
@@ -74,6 +80,7 @@ def _run(args: argparse.Namespace) -> int:
     stage = api.load_stage(args.config)
     ctl = api.Controller(stage, args.model, controller_settings(args))
     with api.Operator(ctl, stage.open_backend(), log=args.log) as op:
+        learner = api.Learner(op, args.model, every=args.refit_every) if args.learn else None
         for note in op.backend.notes:
             if not args.quiet:
                 print(f"move: {note}", file=sys.stderr)
@@ -94,6 +101,9 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"{rec.seq:>5} {rec.target_um:>10.4f} {rec.predicted_um:>13.4f} {rec.predicted_std_um:>9.4f} "
                       f"{rec.measured_um:>12.4f} {rec.error_um:>9.4f}")
             sys.stdout.flush()
+            new = learner.after_move() if learner is not None else None
+            if new is not None and not args.quiet:
+                print(f"move: refit on the log's {ctl.n_train} moves; continuing with {new}", file=sys.stderr)
         if not args.quiet:
             print(f"move: {op.moves} move(s) on the {stage.config.backend.kind} backend appended to {op.log_path}",
                   file=sys.stderr)
