@@ -14,9 +14,22 @@ state):
   start, objective/constraint gradients from the same CasADi graphs;
 - ``dense-grid``: a 101 x 101 grid over the redundant set, Newton-projected (no polish).
 
-Reported per method: solve time (median, min, max), IPOPT/scipy iterations, success rate
-(converged, constraint residual <= 1e-8 µm, actuators in range) and the share of targets on
-which the method reaches the best objective found by any method (relative 1e-5).
+Reported per method: solve CPU time of this process (``time.process_time``: median, min, max),
+IPOPT/SQP/scipy iterations, success rate (converged, constraint residual <= 1e-8 µm, actuators in
+range) and the share of targets on which the method reaches the best objective found by any
+method (relative 1e-5).
+
+Then, in the same run:
+
+- start-up: CPU time (user + system of the child process, median of ``--startup-runs``) of
+  ``python -c pass``, ``python -c 'import numpy, casadi'``, ``microctl --version`` and a one-shot
+  ``microctl solve --target 14`` with a model of 125 moves (``collect`` + ``train`` on sim_paper's
+  simulator), each beside the issue's bars (solve <= 2x the numpy+casadi import; ``--version``
+  <= 1.2x ``pass`` + 50 ms);
+- serve: ``microctl serve`` with that model answering ``--serve-requests`` solve requests (random
+  reachable targets from random states) one at a time, round-trip latency median / p90 / max, then
+  ``--fuzz`` seeded malformed requests: answered, error objects, crashes (a process that died or
+  a request left unanswered).
 
 Usage: ``python scripts/bench_solve.py [--sizes 125,500,2000] [--targets 50] [--seed 0]``.
 Nothing is cached.
@@ -170,35 +183,35 @@ def bench_size(afm, n, args):
     for k, (target, s) in enumerate(zip(targets, states)):
         u0 = base.solve(target, s).u
         # microctl
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         r = ctl.solve(target, s)
-        dt = time.perf_counter() - t1
+        dt = time.process_time() - t1
         ok = r.success and valid(s, r.u, target)
         rec["microctl"]["t"].append(dt); rec["microctl"]["it"].append(r.iterations)
         rec["microctl"]["ok"].append(ok); rec["microctl"]["obj"].append(objective(s, r.u) if ok else np.inf)
         # one cold IPOPT start on the same NLP
         jref = objective(s, u0) or 1.0
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         x, st = ctl._run(ctl._solver, u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
                          afm.workspace.u_hi, ctl._lbg, ctl._ubg)
-        dt = time.perf_counter() - t1
+        dt = time.process_time() - t1
         ok = st["success"] and valid(s, x, target)
         rec["ipopt-1start"]["t"].append(dt); rec["ipopt-1start"]["it"].append(st["iter"])
         rec["ipopt-1start"]["ok"].append(ok); rec["ipopt-1start"]["obj"].append(objective(s, x) if ok else np.inf)
         for m in ("slsqp", "trust-constr"):
-            t1 = time.perf_counter()
+            t1 = time.process_time()
             x, succ, nit = sp.run(m, s, target, u0)
-            dt = time.perf_counter() - t1
+            dt = time.process_time() - t1
             ok = succ and valid(s, x, target)
             rec[m]["t"].append(dt); rec[m]["it"].append(nit); rec[m]["ok"].append(ok)
             rec[m]["obj"].append(objective(s, x) if ok else np.inf)
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         U, obj, _ = ctl._seeds(s, target, args.grid if n < 1000 else args.grid_large)
         fin = np.flatnonzero(np.isfinite(obj))
         good = fin[valid_many(s, U[fin], target)] if fin.size else fin
         # the full objective (the seeding may score large n with a cheaper proxy)
         best_grid = float(ctl._objective_np(s, U[good]).min()) if good.size else np.inf
-        dt = time.perf_counter() - t1
+        dt = time.process_time() - t1
         rec["dense-grid"]["t"].append(dt); rec["dense-grid"]["it"].append(0)
         rec["dense-grid"]["ok"].append(bool(good.size)); rec["dense-grid"]["obj"].append(best_grid)
         if not args.quiet:
@@ -214,6 +227,146 @@ def bench_size(afm, n, args):
         rows.append((n, m, np.median(t), t.min(), t.max(), np.median(rec[m]["it"]), 100 * np.mean(rec[m]["ok"]),
                      100 * np.mean(reached)))
     return rows, fit_s, build_s
+
+
+# --------------------------------------------------------------------------- start-up and serve
+
+MICROCTL = [sys.executable, "-m", "microctl"]
+SIM = ROOT / "configs/stage/sim_paper.yaml"
+
+
+def child_cpu(cmd, runs):
+    """Median and min CPU seconds (user + system of the child) and median wall seconds of ``cmd`` over ``runs``."""
+    import resource
+    import subprocess
+
+    cpu, wall = [], []
+    for _ in range(runs):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+        wall.append(time.perf_counter() - t0)
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime))
+    return float(np.median(cpu)), float(np.min(cpu)), float(np.median(wall))
+
+
+def model_125(tmp):
+    """A 125-move covering log of sim_paper's simulator and the model `microctl train` makes of it."""
+    import subprocess
+
+    log, model = tmp / "log125.csv", tmp / "model125.npz"
+    subprocess.run([*MICROCTL, "collect", "--config", str(SIM), "-n", "125", "-o", str(log), "--quiet"], check=True)
+    subprocess.run([*MICROCTL, "train", str(log), "--config", str(SIM), "-o", str(model), "--quiet"], check=True)
+    return model
+
+
+def bench_startup(model, runs):
+    """Rows (label, CPU median s, CPU min s, wall median s) and the two bars' verdicts."""
+    py = sys.executable
+    cases = [("python -c pass", [py, "-c", "pass"]),
+             ("python -c 'import numpy, casadi'", [py, "-c", "import numpy, casadi"]),
+             ("microctl --version", [*MICROCTL, "--version"]),
+             ("microctl solve --target 14 (n = 125)", [*MICROCTL, "solve", "--config", str(SIM), "--model", str(model),
+                                                     "--target", "14"])]
+    rows = [(label, *child_cpu(cmd, runs)) for label, cmd in cases]
+    base, npca, ver, solve = (rows[k][1] for k in range(4))
+    bars = [f"solve / import numpy, casadi = {solve / npca:.2f}x (bar <= 2x): {'met' if solve <= 2 * npca else 'NOT met'}",
+            f"--version = {ver * 1e3:.0f} ms vs 1.2 x pass + 50 ms = {(1.2 * base + 0.05) * 1e3:.0f} ms: "
+            f"{'met' if ver <= 1.2 * base + 0.05 else 'NOT met'}"]
+    return rows, bars
+
+
+def _fuzz_line(rng):
+    """One malformed request (seeded): random bytes, cut JSON, wrong types, bad values, deep nesting."""
+    import json
+
+    kind = rng.integers(6)
+    if kind == 0:
+        return b"#" + bytes(rng.integers(0, 256, rng.integers(1, 120)).tolist()).replace(b"\n", b" ")
+    if kind == 1:
+        text = json.dumps({"op": "solve", "target_um": 10.0})
+        return text[: rng.integers(1, len(text))].encode()
+    if kind == 2:
+        bad = [None, True, "12", [], {}, 1e308, "nan", [1, 2], {"t": 1}]
+        key = ["target_um", "state", "baseline", "op"][rng.integers(4)]
+        req = {"op": "solve", "target_um": 10.0, key: bad[rng.integers(len(bad))]}
+        return json.dumps(req).encode()
+    if kind == 3:
+        return b"[" * 3000 + b"]" * 3000
+    if kind == 4:
+        return b'{"op": "solve", "target_um": NaN}'
+    return json.dumps({"op": "solve", "target_um": float(rng.choice([-1, 1]) * 10 ** rng.uniform(3, 6))}).encode()
+
+
+def bench_serve(model, requests, fuzz, seed):
+    """Round-trip latencies of `microctl serve` solve requests and the fuzz's outcome."""
+    import json
+    import subprocess
+
+    from microctl import api
+
+    stage = api.load_stage(SIM)
+    ctl = api.Controller(stage, model)
+    rng = np.random.default_rng(seed)
+    states = np.column_stack([rng.uniform(0, 30, requests), rng.uniform(0, 32, (requests, stage.afm.n_q))])
+    reach = np.array([ctl.reachable_interval(st) for st in states[:50]])  # the range hardly moves with the state
+    lo, hi = reach[:, 0].max(), reach[:, 1].min()
+    targets = lo + (0.05 + 0.9 * rng.uniform(size=requests)) * (hi - lo)
+    p = subprocess.Popen([*MICROCTL, "serve", "--config", str(SIM), "--model", str(model), "--quiet"],
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+
+    def ask(line: bytes) -> dict | None:
+        p.stdin.write(line + b"\n")
+        p.stdin.flush()
+        out = p.stdout.readline()
+        return json.loads(out) if out else None
+
+    for k in range(20):  # warm-up
+        ask(json.dumps({"op": "solve", "target_um": float(targets[k]), "state": states[k].tolist()}).encode())
+    lat, ok = [], 0
+    for t, st in zip(targets, states):
+        line = json.dumps({"op": "solve", "target_um": float(t), "state": st.tolist()}).encode()
+        t0 = time.perf_counter()
+        r = ask(line)
+        lat.append(time.perf_counter() - t0)
+        ok += bool(r and r["ok"])
+    answered = errors = 0
+    for _ in range(fuzz):
+        r = ask(_fuzz_line(rng))
+        answered += r is not None
+        errors += bool(r is not None and not r["ok"])
+    alive = p.poll() is None and ask(b'{"op": "state"}') is not None
+    p.stdin.close()
+    p.wait(timeout=60)
+    lat = np.array(lat) * 1e3
+    return {"requests": requests, "ok": ok, "median_ms": float(np.median(lat)), "p90_ms": float(np.percentile(lat, 90)),
+            "max_ms": float(lat.max()), "fuzz": fuzz, "answered": answered, "errors": errors,
+            "crashes": int(not alive) + (fuzz - answered)}
+
+
+def report_startup_and_serve(args):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        model = model_125(Path(tmp))
+        if args.startup_runs:
+            rows, bars = bench_startup(model, args.startup_runs)
+            print()
+            print(f"start-up, CPU of the child process (user + system), median of {args.startup_runs} runs:")
+            print(f"{'command':>40} {'CPU med ms':>10} {'min ms':>8} {'wall med ms':>11}")
+            for label, med, mn, wall in rows:
+                print(f"{label:>40} {med * 1e3:10.0f} {mn * 1e3:8.0f} {wall * 1e3:11.0f}")
+            for b in bars:
+                print(f"  {b}")
+        if args.serve_requests:
+            r = bench_serve(model, args.serve_requests, args.fuzz, args.seed)
+            print()
+            print(f"serve (n = 125, sim_paper): {r['requests']} solve requests one at a time, {r['ok']} answered ok; "
+                  f"round trip median {r['median_ms']:.2f} ms, p90 {r['p90_ms']:.2f} ms, max {r['max_ms']:.2f} ms "
+                  f"(bar: median <= 3 ms: {'met' if r['median_ms'] <= 3 else 'NOT met'})")
+            print(f"serve fuzz: {r['fuzz']} malformed requests, {r['answered']} answered, {r['errors']} error objects, "
+                  f"{r['crashes']} crashes (bar: 0)")
 
 
 def main(argv=None):
@@ -234,6 +387,10 @@ def main(argv=None):
                    help="the controller's seeding grid per null-space axis (its setting 'grid')")
     p.add_argument("--n-polish", type=int, default=ControllerSettings().n_polish,
                    help="grid minima the controller polishes with IPOPT (its setting 'n_polish')")
+    p.add_argument("--startup-runs", type=int, default=7, help="runs per start-up row (0: skip the start-up rows)")
+    p.add_argument("--serve-requests", type=int, default=1000,
+                   help="solve requests timed through `microctl serve` (0: skip the serve rows)")
+    p.add_argument("--fuzz", type=int, default=500, help="malformed requests sent to `microctl serve` after them")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     warnings.filterwarnings("ignore", category=UserWarning, module="scipy")
@@ -249,10 +406,11 @@ def main(argv=None):
         print(f"n={n}: model {fit_s:.1f} s, controller build {build_s * 1e3:.0f} ms")
         all_rows += rows
     print()
-    print(f"{'n':>5} {'method':>13} {'median ms':>10} {'min ms':>8} {'max ms':>9} {'iter':>5} {'success %':>9} "
+    print(f"{'n':>5} {'method':>13} {'CPU med ms':>10} {'min ms':>8} {'max ms':>9} {'iter':>5} {'success %':>9} "
           f"{'best %':>7}")
     for r in all_rows:
         print(f"{r[0]:5d} {r[1]:>13} {r[2]:10.2f} {r[3]:8.2f} {r[4]:9.2f} {r[5]:5.0f} {r[6]:9.0f} {r[7]:7.0f}")
+    report_startup_and_serve(args)
 
 
 if __name__ == "__main__":

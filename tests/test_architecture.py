@@ -28,7 +28,8 @@ LAYERS: dict[str, int] = {
     "measurement": 4,
     "backends": 5, "control": 5,
     "experiments": 6, "diagnosis": 6,
-    "testing": 7, "cli": 7,
+    "testing": 7, "api": 7,
+    "cli": 8,
 }
 #: Top-level modules that belong to a package's layer rather than the base.
 TOP_LEVEL = {"microctl.__main__": "cli"}

@@ -75,8 +75,39 @@ def _deepest_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
         parser = subs[0].choices[name]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level parser with every discovered sub-command."""
+def _command_word(argv: Sequence[str] | None) -> str | None:
+    """The sub-command named on the command line (the first word that is not an option), or None."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    for a in args:
+        if a == "--":
+            return None
+        if not a.startswith("-"):
+            return a
+    return None
+
+
+def _command_modules() -> list[str]:
+    """Names of the command modules (``cli/commands/*.py`` not starting with ``_``), found without importing them."""
+    import pkgutil
+
+    import microctl.cli.commands as commands_pkg
+
+    return sorted(m.name for m in pkgutil.iter_modules(commands_pkg.__path__) if not m.name.startswith("_"))
+
+
+def build_parser(argv: Sequence[str] | None = None, *, lazy: bool = False) -> argparse.ArgumentParser:
+    """Build the top-level parser with the discovered sub-commands.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The command line (default ``sys.argv[1:]``); only used when ``lazy``.
+    lazy : bool
+        Import only what this command line needs: the one command module it names (a module is
+        named like its command), none for a bare ``--version``, all of them otherwise (help,
+        an unknown command: argparse lists them all). A command module imports NumPy,
+        CasADi and the model code, so importing all of them costs most of a second.
+    """
     from microctl._version import __version__
 
     _Parser = _parser_class()
@@ -87,14 +118,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"microctl {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     import importlib
-    import pkgutil
 
-    import microctl.cli.commands as commands_pkg
-
-    for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"microctl.cli.commands.{info.name}")
+    names = _command_modules()
+    if lazy:
+        word = _command_word(argv)
+        args = sys.argv[1:] if argv is None else list(argv)
+        if word in names:
+            names = [word]
+        elif word is None and "--version" in args and not {"-h", "--help"} & set(args):
+            names = []
+    for name in names:
+        module = importlib.import_module(f"microctl.cli.commands.{name}")
         module.register(subparsers)
     return parser
 
@@ -163,7 +197,7 @@ def _exit_now(status: int) -> None:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv, lazy=True)
     if _SIGINTS:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
         raise KeyboardInterrupt
     args, extras = parser.parse_known_args(argv)

@@ -10,7 +10,6 @@ from dataclasses import replace
 
 import casadi as ca
 import numpy as np
-from scipy.special import ndtr
 
 from microctl.control.base import BaseController, unreachable
 from microctl.control.ipopt import ipopt_options
@@ -46,7 +45,7 @@ def compare_noise(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarra
     mean, cov = eafm.g_joint(np.asarray(state, dtype=float), np.vstack([u_a, u_b]))
     d = float(mean[0] - mean[1])
     sd = math.sqrt(max(float(cov[0, 0] + cov[1, 1] - 2.0 * cov[0, 1]), 1e-18))
-    p = float(ndtr(-d / sd))
+    p = 0.5 * math.erfc(d / (sd * math.sqrt(2.0)))  # Phi(-d / sd), no scipy.special at start-up
     return NoiseComparison(prob_quieter=p, log_ratio_mean=d, log_ratio_std=sd, credible=p >= level, level=level)
 
 

@@ -39,6 +39,7 @@ import numpy as np
 
 from microctl.control.base import BaseController, unreachable
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
+from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
 from microctl.control.objectives import NoiseVariance, Objective, SmallestMotion
 from microctl.control.redundant import RedundantSet, grid_local_minima
@@ -102,6 +103,11 @@ class EAFMController(BaseController):
         g = ca.vertcat(e["t_mean"] - td, ca.mtimes(ca.DM(afm.K), u))  # eq. 4 constraint; lo <= K u <= hi
         nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
         self._solver = ca.nlpsol(f"{self.name}_ipopt", "ipopt", nlp, ipopt_options(self.settings))
+        self._fast = None
+        if self.settings.fast_path:
+            fun = build_fast_function(u, s, J, e["t_mean"], f"{self.name}_fast")
+            self._fast = FastSQP(fun, afm.K, afm.lo, afm.hi, constraint_tol=self.settings.constraint_tol,
+                                 kkt_tol=self.settings.ipopt_tol)
         self._lbg = np.concatenate([[0.0], afm.lo])
         self._ubg = np.concatenate([[0.0], afm.hi])
         self.n_builds += 1
@@ -215,30 +221,42 @@ class EAFMController(BaseController):
                     "n": prior["n"] if prior else 0}
         best: tuple[float, np.ndarray, str] | None = None
         for u0 in starts:
-            jref = float(self._objective_np(s, u0[None, :], seeding=True)[0])
-            jref = jref if jref > 1e-300 else 1.0
-            x, st = self._run(self._solver, u0, np.concatenate([[target], s, [jref]]),
-                              self.afm.workspace.u_lo, self.afm.workspace.u_hi, self._lbg, self._ubg)
+            x0, st = self._start(u0, s, target)
             attempts["status"].append(st["status"])
             attempts["iter"] += st["iter"]
             attempts["n"] += 1
             if not st["success"]:
                 continue
-            x = self.surface.refine(s, x, target)
+            x = self.surface.refine(s, x0, target)
             if x is None:
                 continue
-            j = float(self._objective_np(s, x[None, :])[0])
+            # the fast path evaluated the objective at its solution already (refine left it there)
+            j = st["objective"] if x is x0 and "objective" in st else float(self._objective_np(s, x[None, :])[0])
             if best is None or j < best[0]:
                 best = (j, x, st["status"])
         self._last_attempts = attempts
         if best is None:
             return None
-        return self._result(s, target, best[1], best[2], True, t0)
+        return self._result(s, target, best[1], best[2], True, t0, objective=best[0])
+
+    def _start(self, u0: np.ndarray, s: np.ndarray, target: float) -> tuple[np.ndarray, dict]:
+        """One polish from ``u0``: the fast SQP when it converges (KKT-checked), else IPOPT from ``u0``
+        (the objective scaled by its value at ``u0``)."""
+        if self._fast is not None:
+            x, st = self._fast.solve(u0, s, target)
+            if st["success"]:
+                return x, {"status": "Solve_Succeeded", "iter": st["iter"], "success": True,
+                           "objective": st["objective"]}
+        jref = float(self._objective_np(s, u0[None, :], seeding=True)[0])
+        jref = jref if jref > 1e-300 else 1.0
+        return self._run(self._solver, u0, np.concatenate([[target], s, [jref]]),
+                         self.afm.workspace.u_lo, self.afm.workspace.u_hi, self._lbg, self._ubg)
 
     def _result(self, s: np.ndarray, target: float, u: np.ndarray, status: str, success: bool,
-                t0: float) -> ControlResult:
-        return self.surface.result(self.name, s, target, u, float(self._objective_np(s, u[None, :])[0]), status,
-                                   success, self._last_attempts, t0)
+                t0: float, objective: float | None = None) -> ControlResult:
+        if objective is None:
+            objective = float(self._objective_np(s, u[None, :])[0])
+        return self.surface.result(self.name, s, target, u, objective, status, success, self._last_attempts, t0)
 
     def solve_sequence(self, targets: list[float], states: list[np.ndarray] | None = None) -> list[ControlResult]:
         """Solve a target sequence, warm-starting each from the previous solution.

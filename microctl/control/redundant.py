@@ -73,7 +73,7 @@ class RedundantSet:
         vals = V @ self.w - d
         pts = [V[vals == 0.0]]
         i, j = self.edges[:, 0], self.edges[:, 1]
-        cross = (vals[i] * vals[j]) < 0
+        cross = (np.sign(vals[i]) * np.sign(vals[j])) < 0  # signs: no overflow for a huge d
         if np.any(cross):
             a, b = vals[i[cross]], vals[j[cross]]
             lam = (a / (a - b))[:, None]

@@ -49,6 +49,12 @@ class ControllerSettings:
         IPOPT ``tol``.
     max_iter : int
         IPOPT ``max_iter`` per start.
+    fast_path : bool
+        Polish each start with the small SQP of :mod:`microctl.control.fastpath` first (exact
+        Hessian, enumerated active-set QP steps; its answer accepted only when the KKT
+        conditions hold to ``ipopt_tol``, the target to ``constraint_tol`` and every range), IPOPT
+        from the same start otherwise (default True). A start it solves reports IPOPT's status
+        for the same outcome, ``Solve_Succeeded``. False: IPOPT only.
     sequence_objective : str
         What sequence control (:mod:`microctl.control.sequence`) minimises over a target list, a
         name registered in :data:`~microctl.control.sequence_objectives.SEQUENCE_OBJECTIVES`:
@@ -67,6 +73,7 @@ class ControllerSettings:
     range_tol: float = setting(1e-9, lo=0.0, hi=1e-3)                     # µm: round-off only
     ipopt_tol: float = setting(1e-8, lo=0.0, hi=1e-2, lo_open=True)
     max_iter: int = setting(200, lo=1, hi=100_000)
+    fast_path: bool = setting(True)
     sequence_objective: str = SEQUENCE_OBJECTIVES.setting("sum")
 
     def __post_init__(self) -> None:

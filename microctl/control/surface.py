@@ -79,11 +79,19 @@ class EAFMSurface:
         return out[0], out[1]
 
     def newton(self, s: np.ndarray, U: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
-        """Move each row of U along w onto t_mean(s, u) = target; return U and |residual|."""
+        """Move each row of U along w onto t_mean(s, u) = target; return U and |residual|.
+
+        At most ``newton_steps`` steps; it stops as soon as every residual is below 1e-11 max(1,
+        |target|) µm (one step with an affine mean correction), so an evaluation of the mean and
+        its gradient (an m x n kernel) is not repeated once it would change nothing.
+        """
         dirn = self.rset.dir_u
         U = U.copy()
+        done = 1e-11 * max(1.0, abs(target))
         for _ in range(self.settings.newton_steps):
             t, dt = self.eafm.mean_and_grad_u(s, U)
+            if np.all(np.abs(t - target) <= done):
+                return U, np.abs(t - target)
             slope = dt @ dirn
             slope = np.where(np.abs(slope) > 1e-12, slope, 1e-12)
             U += ((target - t) / slope)[:, None] * dirn[None, :]

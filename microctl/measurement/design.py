@@ -34,7 +34,6 @@ still, another at its range limit), so the mean correction must be learned there
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import qmc
 
 from microctl.errors import ConfigError, SolveError
 from microctl.models.afm import AnalyticForwardModel
@@ -107,6 +106,8 @@ def training_moves(afm: AnalyticForwardModel, design: str, n: int, seed: int, ep
 
 def _sobol_in_polytope(afm: AnalyticForwardModel, n: int, seed: int) -> np.ndarray:
     """The first n points of a scrambled Sobol sequence (bounding box) that lie in the polytope."""
+    from scipy.stats import qmc  # here, not at import: scipy.stats costs most of a second of start-up
+
     ws = afm.workspace
     sobol = qmc.Sobol(d=ws.u_lo.size, scramble=True, seed=np.random.default_rng(seed))
     m = max(int(np.ceil(np.log2(max(4 * n, 16)))), 4)

@@ -28,7 +28,6 @@ from typing import Callable
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import linprog
 
 from microctl.errors import ConfigError, SolveError
 from microctl.stage.causes import REGISTRY, Effects, stage_parts
@@ -107,8 +106,54 @@ class Workspace:
         return self.u_lo + np.asarray(z) * (self.u_hi - self.u_lo)
 
 
+def _polytope_vertices(K: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """Vertices of {u : lo ≤ K u ≤ hi} by enumeration, shape (m, n_p); None when that is not exact or cheap.
+
+    Exact for K of full column rank (the polytope is then bounded, so its extremes lie at
+    vertices); every choice of n_p of the 2 n_q faces is solved at once (C(8, 3) = 56 systems
+    of 3 × 3 for Table I's kind of stage). None for a rank-deficient K or too many choices.
+    """
+    from itertools import combinations
+    from math import comb
+
+    n_q, n_p = K.shape
+    if n_p > n_q or comb(2 * n_q, n_p) > 5000 or np.linalg.matrix_rank(K) < n_p:
+        return None
+    A = np.vstack([K, -K])
+    b = np.concatenate([hi, -lo])
+    combos = np.array(list(combinations(range(2 * n_q), n_p)))
+    As, bs = A[combos], b[combos]
+    ok = np.abs(np.linalg.det(As)) > 1e-12 * max(1.0, float(np.abs(K).max())) ** n_p
+    if not np.any(ok):
+        return np.zeros((0, n_p))
+    V = np.linalg.solve(As[ok], bs[ok][..., None])[..., 0]
+    scale = 1.0 + np.abs(b).max()
+    return V[np.all(V @ A.T <= b + 1e-9 * scale, axis=1)]
+
+
 def _lp_extreme(c: np.ndarray, K: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
-    """min c·u s.t. lo ≤ K u ≤ hi."""
+    """min c·u s.t. lo ≤ K u ≤ hi.
+
+    Parameters
+    ----------
+    c : ndarray, shape (n_p,)
+    K : ndarray, shape (n_q, n_p)
+    lo, hi : ndarray, shape (n_q,)
+
+    With K of full column rank (every stage of Table I's kind) the polytope is bounded and the
+    minimum is the smallest c·v over its vertices (:func:`_polytope_vertices`); otherwise a
+    linear program (``scipy.optimize.linprog``, imported only then: it costs a large part of
+    the command line's start-up).
+    """
+    if np.any(lo > hi):
+        raise ConfigError("the actuator ranges admit no platform pose (a range has lo > hi)")
+    V = _polytope_vertices(K, lo, hi)
+    if V is not None:
+        if V.shape[0] == 0:
+            raise ConfigError("the actuator ranges admit no platform pose (the polytope lo <= K u <= hi is empty)")
+        return float(np.min(V @ c))
+    from scipy.optimize import linprog
+
     res = linprog(
         c,
         A_ub=np.vstack([K, -K]),

@@ -352,14 +352,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
             ok = g > 0 and _gain_without_top_rows(r2, v, v1, current, Phi[:, int(j)]) >= need
             options.append((p_rest[int(j)] if ok else 1.0, g, need, int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
-            lt, ct, w = _fit_tilt(r2, Phi[:, chosen], tilt_inputs)
-            g = lt - ll
-            k = tilt_inputs.shape[1]
-            need = 0.5 * (k + 1) * math.log(n)
-            v1 = np.hstack([np.ones((n, 1)), Phi[:, chosen]]) @ ct[:-1] + ct[-1] * np.exp(tilt_inputs @ w)
-            ok = g > 0 and _gain_without_top_rows(r2, v, v1, Phi[:, chosen],
-                                                  np.exp(np.clip(tilt_inputs @ w, -50, 50))) >= need
-            options.append((float(stats.chi2.sf(2 * g, k + 1)) * m if ok else 1.0, g, need, "tilt", ct, w))
+            options.append(_tilt_option(r2, v, ll, Phi[:, chosen], tilt_inputs, m))
         best = min(options, key=lambda o: (o[0], -o[1])) if options else None
         if best is None or best[0] >= alpha or best[1] < best[2]:
             break
@@ -374,6 +367,21 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     names_out = tuple(names[j] for j in chosen) + (("tilt",) if tilt is not None else ())
     return Selection(tuple(chosen), names_out, tuple(gains), tuple(thresholds), ll,
                      None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values))
+
+
+def _tilt_option(r2: np.ndarray, v: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: int) -> tuple:
+    """The tilt as an entry option ``(adjusted p, gain, needed gain, "tilt", c, w)`` against the
+    current variance v (log-likelihood ll, features Phi): its likelihood-ratio statistic referred
+    to chi2 with k + 1 degrees of freedom, Bonferroni over the m candidates in play; p = 1 unless
+    the gain reaches the need with the top rows set aside (:func:`_gain_without_top_rows`)."""
+    n, k = Z.shape
+    lt, ct, w = _fit_tilt(r2, Phi, Z)
+    g = lt - ll
+    need = 0.5 * (k + 1) * math.log(n)
+    col = np.exp(np.clip(Z @ w, -50, 50))
+    v1 = np.hstack([np.ones((n, 1)), Phi]) @ ct[:-1] + ct[-1] * col
+    ok = g > 0 and _gain_without_top_rows(r2, v, v1, Phi, col) >= need
+    return (float(stats.chi2.sf(2 * g, k + 1)) * m if ok else 1.0, g, need, "tilt", ct, w)
 
 
 #: the tilt's slope bound per standardised pose coordinate: its variance grows at most e^4-fold

@@ -139,13 +139,13 @@ def test_sigint_swallowed_during_start_up_still_exits_130(capsys, monkeypatch):
 
     real = cli.build_parser
 
-    def swallowing_import():  # a library that catches the KeyboardInterrupt of a Ctrl-C while it loads
+    def swallowing_import(*args, **kwargs):  # a library that catches the KeyboardInterrupt of a Ctrl-C while it loads
         try:
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)
         except KeyboardInterrupt:
             pass
-        return real()
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(cli, "build_parser", swallowing_import)
     rc = main(["stage", "show", "--config", str(TABLE1)])
@@ -159,7 +159,7 @@ def test_sigint_surfacing_as_import_error_exits_130(capsys, monkeypatch):
 
     import microctl.cli as cli
 
-    def failing_import():  # a compiled module interrupted while it initialises
+    def failing_import(*args, **kwargs):  # a compiled module interrupted while it initialises
         try:
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)

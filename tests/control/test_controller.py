@@ -204,7 +204,7 @@ def test_solver_built_once_per_model(afm, eafm, nlpsol_calls):
 
 
 def test_ipopt_failure_never_leaves_the_ranges(afm, eafm):
-    ctl = OptimalController(eafm, ControllerSettings(max_iter=1))
+    ctl = OptimalController(eafm, ControllerSettings(max_iter=1, fast_path=False))  # IPOPT alone
     for target in (3.0, 25.0):
         r = ctl.solve(target)
         assert not r.success and "fallback to seed" in r.status

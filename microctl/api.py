@@ -1,0 +1,586 @@
+"""The public Python API of microctl: what a lab script or notebook needs, with types.
+
+Load a stage, train a residual model from a measurement log, build a controller, solve for a
+target, move a stage (simulated or hardware) and read the results::
+
+    from microctl import api
+
+    stage = api.load_stage("configs/stage/sim_paper.yaml")
+    model = api.train("log.csv", stage, out="model.npz")
+    ctl = api.Controller(stage, "model.npz")
+    sol = ctl.solve(14.0)                       # ControlResult: u, q, predicted_um, predicted_std_um
+    with api.Operator(ctl, stage.open_backend(), log="moves.csv") as op:
+        rec = op.move(14.0)                     # MoveRecord: predicted ± std and the measured pose
+
+The command line (``microctl solve``, ``move``, ``serve``) is a thin layer over these names;
+``docs/api.md`` has examples that run as tests. Units: µm for displacements, mrad for
+rotations. Errors are :mod:`microctl.errors`' classes: :class:`~microctl.errors.ConfigError`
+and :class:`~microctl.errors.DataError` for bad input,
+:class:`~microctl.errors.UnreachableTargetError` for a target outside what the stage reaches,
+:class:`~microctl.errors.BackendError` from a device, :class:`~microctl.errors.SolveError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import re
+import signal
+import threading
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from microctl.control.controller import AFMController, ControllerSettings, OptimalController, with_baseline
+from microctl.control.result import ControlResult
+from microctl.errors import BackendError, ConfigError, SolveError
+from microctl.measurement.appending import append_log_writer
+from microctl.measurement.log import Measurement, MeasurementLog, read_log
+from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
+from microctl.models.eafm import EAFM
+from microctl.stage.config import StageConfig, load_stage_config
+
+__all__ = [
+    "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
+    "MoveRecord", "Operator", "Learner", "MOVE_LOG_COLUMNS",
+]
+
+#: Extra columns of a log that ``Operator`` creates (the measurement-log contract allows extra
+#: columns; ``train`` ignores them).
+MOVE_LOG_COLUMNS = ("target_um", "controller", "predicted_um", "predicted_std_um")
+
+
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """A stage configuration with its analytic forward model.
+
+    Attributes
+    ----------
+    config : StageConfig
+        The validated stage YAML (geometry, ranges, backend).
+    afm : AnalyticForwardModel
+        The AFM f_a(s, u) of eq. 14.
+    """
+
+    config: StageConfig
+    afm: AnalyticForwardModel
+
+    @property
+    def name(self) -> str:
+        """The stage's name (from its YAML)."""
+        return self.config.stage.name
+
+    @property
+    def dof(self) -> tuple[str, ...]:
+        """Names of the control signal's entries, n_p of them (``z, rx, ry``)."""
+        return self.afm.dof
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the state s = [t; q] entries, n_s = 1 + n_q of them."""
+        return self.afm.state_names
+
+    @property
+    def range_um(self) -> tuple[np.ndarray, np.ndarray]:
+        """The configured actuator ranges (lo, hi), each shape (n_q,), µm: no command leaves them."""
+        return self.afm.lo.copy(), self.afm.hi.copy()
+
+    def zero_state(self) -> np.ndarray:
+        """The zero state, shape (n_s,)."""
+        return self.afm.zero_state()
+
+    def check_state(self, state: Sequence[float] | Mapping[str, float] | np.ndarray | None) -> np.ndarray:
+        """A possible state s = [t; q] as an array of shape (n_s,); None gives the zero state.
+
+        Parameters
+        ----------
+        state : sequence of n_s floats, mapping name -> float, or None
+            A mapping must name every entry (:attr:`state_names`).
+
+        Raises
+        ------
+        ConfigError
+            Wrong length or names, a non-finite value, an actuator beyond its hardware
+            ``limit_um`` or a tool pose beyond the bound a measurement log has.
+        """
+        if state is None:
+            return self.zero_state()
+        names = self.state_names
+        if isinstance(state, Mapping):
+            missing = [n for n in names if n not in state]
+            unknown = [k for k in state if k not in names]
+            if missing or unknown:
+                raise ConfigError(f"state: expected the entries {', '.join(names)}"
+                                  + (f"; missing {', '.join(missing)}" if missing else "")
+                                  + (f"; unknown {', '.join(map(str, unknown))}" if unknown else ""))
+            state = [state[n] for n in names]
+        try:
+            s = np.asarray(state, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            s = None
+        if s is None or s.ndim != 1:
+            raise ConfigError(f"state: {str(state)[:200]} is not a list of {len(names)} numbers ({', '.join(names)})")
+        if s.size != len(names):
+            raise ConfigError(f"state: {s.size} value(s), expected {len(names)} ({', '.join(names)})")
+        if not np.all(np.isfinite(s)):
+            raise ConfigError(f"state: {s.tolist()} has a non-finite value")
+        for a, q in zip(self.config.stage.actuators, s[1:]):
+            lo, hi = a.limit_um
+            if not lo <= q <= hi:
+                raise ConfigError(f"state: {a.name} = {q:g} µm is beyond the actuator's hardware limit "
+                                  f"[{lo:g}, {hi:g}] µm; no stage can be there")
+        t_max = self._t_bound()
+        if abs(s[0]) > t_max:
+            raise ConfigError(f"state: {names[0]} = {s[0]:g} µm is implausible: the stage reaches at most "
+                              f"|t| = {t_max / T_PLAUSIBLE_FACTOR:.6g} µm")
+        return s
+
+    def _t_bound(self) -> float:
+        """The bound on |t| a measurement log has (computed once: it builds a model of the stage)."""
+        cache = self.__dict__.setdefault("_cache", {})
+        if "t_bound" not in cache:
+            cache["t_bound"] = plausible_t_bound_um(self.config.stage)
+        return cache["t_bound"]
+
+    def open_backend(self, **kwargs: Any):
+        """The backend the stage YAML names, connected (a :class:`~microctl.backends.base.StageBackend`).
+
+        Parameters
+        ----------
+        **kwargs
+            Passed to the backend (e.g. ``seed`` of the simulated stage).
+        """
+        from microctl.backends import make_backend
+
+        return make_backend(self.config, **kwargs)
+
+
+def load_stage(path: str | Path) -> Stage:
+    """Read and validate a stage YAML (``configs/stage/*.yaml``); ConfigError naming the field."""
+    config = load_stage_config(path)
+    return Stage(config, AnalyticForwardModel(config.stage))
+
+
+def read_measurements(path: str | Path, stage: Stage, min_rows: int = 1) -> MeasurementLog:
+    """Read and validate a measurement log (docs/measurement-log.md) of ``stage``; DataError naming row and column."""
+    return read_log(path, stage.config.stage, min_rows=min_rows)
+
+
+def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str = "covering",
+            backend: Any | None = None) -> int:
+    """Run ``n`` designed training moves on the stage's backend and write them as a measurement log (``microctl collect``).
+
+    Parameters
+    ----------
+    stage : Stage
+    n : int
+        Number of moves (>= 1).
+    out : path
+        The log (overwritten).
+    seed : int
+        Seed of the move design.
+    design : str
+        ``covering`` (default) or ``space_filling`` (:mod:`microctl.measurement.design`).
+    backend : StageBackend, optional
+        Default: :meth:`Stage.open_backend` (opened and closed here).
+
+    Returns
+    -------
+    int
+        Moves written.
+    """
+    from microctl.backends.collect import run_collect
+    from microctl.measurement.design import training_moves
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
+    moves = training_moves(stage.afm, design, int(n), seed)
+    if backend is not None:
+        return run_collect(backend, moves, out, quiet=True)
+    with stage.open_backend() as b:
+        return run_collect(b, moves, out, quiet=True)
+
+
+def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | None = None,
+          restarts: int = 2, seed: int = 0, noise_model: str = "dictionary", max_time: float | None = None):
+    """Fit the residual VHGPR (eq. 3) to a measurement log, as ``microctl train`` does.
+
+    Parameters
+    ----------
+    log : path or MeasurementLog
+        At least 5 moves.
+    stage : Stage
+    out : path, optional
+        Also write the model file there.
+    restarts, seed, noise_model : int, int, str
+        :class:`~microctl.models.training.ResidualModelSettings` fields.
+    max_time : float, optional
+        Wall-time budget of the fit, s.
+
+    Returns
+    -------
+    FittedVHGPR
+        Bound to the stage geometry; pass it (or the file) to :class:`Controller`.
+    """
+    from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
+
+    if not isinstance(log, MeasurementLog):
+        log = read_measurements(log, stage, min_rows=5)
+    elif len(log) < 5:
+        raise ConfigError(f"{log.path}: {len(log)} moves, at least 5 needed to train")
+    settings = ResidualModelSettings(restarts=restarts, seed=seed, noise_model=noise_model)
+    model = train_residual_model(residual_dataset(log, stage.afm), stage.afm, settings, max_time=max_time)
+    if out is not None:
+        model.save(out)
+    return model
+
+
+class Controller:
+    """The EAFM optimal controller of eq. 4 for one stage and residual model.
+
+    Parameters
+    ----------
+    stage : Stage
+    model : path or FittedVHGPR
+        A model file from ``microctl train`` / :func:`train` (checked against the stage geometry).
+    settings : ControllerSettings, optional
+        r_e, kappa and the solver settings (default: the package's).
+    """
+
+    def __init__(self, stage: Stage, model: Any, settings: ControllerSettings | None = None):
+        self.stage = stage
+        self.settings = settings or ControllerSettings()
+        self._load(model)
+
+    def _load(self, model: Any) -> None:
+        eafm = EAFM(self.stage.afm, model)
+        ctl = OptimalController(eafm, self.settings)
+        self.eafm, self.optimal = eafm, ctl
+        self.model_source = eafm.source
+        self._baseline: AFMController | None = None
+
+    def reload(self, model: Any | None = None) -> None:
+        """Load the model again (default: the same file, e.g. after a refit) and rebuild the solver."""
+        if model is None:
+            if self.model_source.startswith("<"):
+                raise ConfigError("reload: the controller's model was given in memory; give a model file")
+            model = self.model_source
+        self._load(model)
+
+    @property
+    def n_train(self) -> int:
+        """Number of moves the residual model was trained on."""
+        return self.eafm.n_train
+
+    def reachable_interval(self, state: Sequence[float] | np.ndarray | None = None) -> tuple[float, float]:
+        """EAFM-mean tool poses reachable from ``state`` (µm; default the zero state)."""
+        return self.optimal.reachable_interval(self.stage.check_state(state))
+
+    def solve(self, target_um: float, state: Sequence[float] | np.ndarray | None = None, *,
+              baseline: bool = False) -> ControlResult:
+        """The optimal control signal for ``target_um`` from ``state`` (default the zero state).
+
+        Parameters
+        ----------
+        target_um : float
+        state : array_like, shape (n_s,), optional
+        baseline : bool
+            Also solve the AFM baseline from the same state and say whether the chosen pose is
+            credibly quieter (``result.baseline``, ``result.vs_baseline``).
+
+        Returns
+        -------
+        ControlResult
+            ``u`` (n_p,), ``q`` (n_q,) inside the ranges, ``predicted_um`` ± ``predicted_std_um``.
+
+        Raises
+        ------
+        ConfigError
+            A target that is not a finite number, an impossible state.
+        UnreachableTargetError
+            The target is outside what the stage reaches from ``state`` (the message gives the interval).
+        """
+        target = _finite(target_um, "target_um")
+        res = self.optimal.solve(target, self.stage.check_state(state))
+        if baseline:
+            if self._baseline is None:
+                self._baseline = AFMController(self.stage.afm, self.settings, reporter=self.eafm)
+            res = with_baseline(self.eafm, res, self._baseline, self.settings.credible_level)
+        return res
+
+    def to_dict(self, res: ControlResult) -> dict:
+        """A result as the JSON object ``microctl solve --json`` prints (docs/cli.md)."""
+        afm, dof = self.stage.afm, self.stage.dof
+        out = {
+            "target_um": res.target_um, "state": dict(zip(afm.state_names, map(float, res.state))),
+            "u": dict(zip(dof, map(float, res.u))), "q_um": res.q.tolist(), "predicted_um": res.predicted_um,
+            "predicted_std_um": res.predicted_std_um, "noise_std_um": res.noise_std_um,
+            "noise_upper_std_um": res.noise_upper_std_um, "bias_std_um": res.bias_std_um,
+            "objective": res.objective, "r_e": self.settings.r_e, "kappa": self.settings.kappa,
+            "status": res.status, "success": res.success, "iterations": res.iterations,
+            "solve_time_s": res.solve_time_s, "model": {"noise_model": self.eafm.model.noise_model},
+        }
+        if res.vs_baseline is not None and res.baseline is not None:
+            b = res.baseline
+            out["credibly_quieter_than_baseline"] = res.vs_baseline.credible
+            out["vs_baseline"] = res.vs_baseline.to_dict()
+            out["baseline"] = {"controller": "afm", "u": dict(zip(dof, map(float, b.u))), "q_um": b.q.tolist(),
+                               "predicted_um": b.predicted_um, "predicted_std_um": b.predicted_std_um,
+                               "predicted_by": "eafm", "status": b.status}
+        return out
+
+
+def _finite(value: Any, name: str) -> float:
+    """``value`` as a finite float; ConfigError naming ``name`` otherwise (bools are refused)."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{name}: expected a number of µm, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{name}: expected a number of µm, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ConfigError(f"{name}: {value!r} is not a finite number")
+    return v
+
+
+@dataclass(frozen=True)
+class MoveRecord:
+    """One executed move.
+
+    Attributes
+    ----------
+    seq : int
+        Its ``seq`` in the log (or the count of moves made, without a log).
+    target_um : float
+    state_before : ndarray, shape (n_s,)
+        s = [t; q] the command was computed from (the backend's state).
+    u : ndarray, shape (n_p,)
+        The control signal sent.
+    q_um : ndarray, shape (n_q,)
+        The actuator commands sent (inside the configured ranges).
+    predicted_um, predicted_std_um : float
+        The EAFM's predicted pose and its predicted scatter (std) at the command.
+    measured_um : float
+        The gauge after the move.
+    time_s : float
+        When the move had settled (s since the backend's start).
+    solution : ControlResult
+    """
+
+    seq: int
+    target_um: float
+    state_before: np.ndarray
+    u: np.ndarray
+    q_um: np.ndarray
+    predicted_um: float
+    predicted_std_um: float
+    measured_um: float
+    time_s: float
+    solution: ControlResult
+
+    @property
+    def error_um(self) -> float:
+        """measured - target, µm."""
+        return self.measured_um - self.target_um
+
+    def to_dict(self, stage: Stage) -> dict:
+        """Plain JSON-able form (what ``microctl move --json`` and ``serve`` print)."""
+        return {
+            "seq": self.seq, "target_um": self.target_um,
+            "state_before": dict(zip(stage.state_names, map(float, self.state_before))),
+            "u": dict(zip(stage.dof, map(float, self.u))), "q_um": self.q_um.tolist(),
+            "predicted_um": self.predicted_um, "predicted_std_um": self.predicted_std_um,
+            "measured_um": self.measured_um, "error_um": self.error_um, "time_s": self.time_s,
+            "status": self.solution.status, "success": self.solution.success,
+            "solve_time_s": self.solution.solve_time_s,
+        }
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) until the block ends, so a move is never executed without its log row.
+
+    In the main thread only (elsewhere signals are not delivered to Python anyway). A SIGINT in
+    the block is re-raised as KeyboardInterrupt when it ends, through the handler that was set.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[tuple] = []
+    old = signal.signal(signal.SIGINT, lambda *a: got.append(a))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            if callable(old):
+                old(*got[0])
+            elif old != signal.SIG_IGN:
+                raise KeyboardInterrupt
+
+
+class Operator:
+    """Moves a stage with a controller and keeps every executed move in a measurement log.
+
+    Parameters
+    ----------
+    controller : Controller
+    backend : StageBackend
+        From :meth:`Stage.open_backend` (closed by :meth:`close`); its state is where each move
+        starts (the serial backend reads it at connect).
+    log : path, optional
+        Measurement log the moves are appended to (created with the collect columns and
+        :data:`MOVE_LOG_COLUMNS` when missing), so it trains (``microctl train``).
+
+    Notes
+    -----
+    A move is solved first; an unreachable target raises before anything is sent. The command
+    is checked against the configured ranges again by the backend (nothing outside them is
+    sent). The move and its log row are one step that Ctrl-C does not split: an interrupt
+    arriving during the move is raised after the row is written.
+    """
+
+    def __init__(self, controller: Controller, backend: Any, log: str | Path | None = None):
+        self.controller = controller
+        self.stage = controller.stage
+        self.backend = backend
+        self.moves = 0
+        self._writer = None
+        self._seq = 0
+        self._time_offset = 0.0
+        if log is not None:
+            self._writer, self._seq, self._time_offset = append_log_writer(log, self.stage.config.stage,
+                                                                           MOVE_LOG_COLUMNS)
+
+    @property
+    def state(self) -> np.ndarray:
+        """The stage's state s = [t; q] now, shape (n_s,)."""
+        return self.backend.state
+
+    @property
+    def log_path(self) -> Path | None:
+        """The measurement log, if any."""
+        return None if self._writer is None else self._writer.path
+
+    def move(self, target_um: float) -> MoveRecord:
+        """Solve for ``target_um`` from the stage's state, execute it, read the gauge, log the move.
+
+        Returns
+        -------
+        MoveRecord
+
+        Raises
+        ------
+        ConfigError, UnreachableTargetError
+            Before anything is sent.
+        BackendError
+            From the device (the log keeps every completed move).
+        """
+        s = self.backend.state
+        res = self.controller.solve(target_um, s)
+        lo, hi = self.stage.range_um
+        tol = self.controller.settings.range_tol
+        if not (np.all(np.isfinite(res.q)) and np.all(res.q >= lo - tol) and np.all(res.q <= hi + tol)):
+            raise SolveError(f"the command q = {res.q.tolist()} µm leaves the configured ranges; nothing was sent")
+        with _interrupts_deferred():
+            m: Measurement = self.backend.move(res.u)
+            if self._time_offset:
+                m = replace(m, time_s=m.time_s + self._time_offset)  # the log's clock continues
+            seq = self._seq
+            if self._writer is not None:
+                extra = {"target_um": repr(float(res.target_um)), "controller": "eafm",
+                         "predicted_um": repr(float(res.predicted_um)),
+                         "predicted_std_um": repr(float(res.predicted_std_um))}
+                self._writer.write(m, s, seq=seq, extra={k: v for k, v in extra.items()
+                                                         if k in self._writer.extra_columns})
+            self._seq += 1
+            self.moves += 1
+        return MoveRecord(seq=seq, target_um=res.target_um, state_before=s, u=np.asarray(m.u, dtype=float),
+                          q_um=np.asarray(m.q_um, dtype=float), predicted_um=res.predicted_um,
+                          predicted_std_um=res.predicted_std_um, measured_um=float(m.t_um), time_s=float(m.time_s),
+                          solution=res)
+
+    def close(self) -> None:
+        """Close the log and the backend (idempotent)."""
+        try:
+            if self._writer is not None:
+                self._writer.close()
+        finally:
+            try:
+                self.backend.close()
+            except BackendError:
+                pass
+
+    def __enter__(self) -> "Operator":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Learner:
+    """Folds the moves an :class:`Operator` logs into the model: a refit every ``every`` moves.
+
+    Each refit trains on the whole log (:func:`train`, seeded) and writes a new, versioned model
+    file beside the original, ``MODEL.v1.npz``, ``MODEL.v2.npz``, ..., never overwriting one; a
+    line per version in ``MODEL.versions.jsonl`` records the log rows it was trained on (count
+    and SHA-256 of those lines), the seed and restarts, so ``head -n ROWS+1 LOG.csv`` and
+    ``microctl train`` reproduce it. The controller then uses the new version.
+
+    Parameters
+    ----------
+    operator : Operator
+        With a log.
+    model : path
+        The model file the controller started from.
+    every : int
+        Moves between refits (>= 1).
+    restarts, seed : int
+        Of each refit.
+    """
+
+    def __init__(self, operator: Operator, model: str | Path, every: int = 50, restarts: int = 1, seed: int = 0):
+        if operator.log_path is None:
+            raise ConfigError("learning needs a measurement log the moves are appended to")
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(f"every: expected a number of moves >= 1, got {every!r}")
+        self.operator, self.model, self.every = operator, Path(model), every
+        self.restarts, self.seed, self._since = restarts, seed, 0
+        self.manifest = self.model.with_name(f"{self.model.stem}.versions.jsonl")
+
+    def next_version(self) -> int:
+        """One past the largest version file beside the model (1 when there is none)."""
+        found = [int(m.group(1)) for f in self.model.parent.glob(f"{self.model.stem}.v*.npz")
+                 if (m := re.fullmatch(rf"{re.escape(self.model.stem)}\.v(\d+)\.npz", f.name))]
+        return max(found, default=0) + 1
+
+    def after_move(self) -> Path | None:
+        """Count a move; refit when ``every`` have been made since the last (the new file, else None)."""
+        self._since += 1
+        return self.refit() if self._since >= self.every else None
+
+    def refit(self) -> Path:
+        """Train on the log as it is now, write the next version, switch the controller to it."""
+        import hashlib
+        import json
+        import time
+
+        path = self.operator.log_path
+        raw = path.read_bytes()
+        log = read_measurements(path, self.operator.stage, min_rows=5)
+        version = self.next_version()
+        out = self.model.with_name(f"{self.model.stem}.v{version}.npz")
+        train(log, self.operator.stage, out=out, restarts=self.restarts, seed=self.seed)
+        entry = {"version": version, "model": out.name, "log": str(path), "rows": len(log),
+                 "log_sha256": hashlib.sha256(raw).hexdigest(), "restarts": self.restarts, "seed": self.seed,
+                 "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                 "reproduce": f"head -n {len(log) + 1} {path} > rows.csv && microctl train rows.csv --config STAGE.yaml "
+                              f"-o {out.name} --restarts {self.restarts} --seed {self.seed}"}
+        with self.manifest.open("a", encoding="utf-8") as fh:
+            fh.write(json.dumps(entry) + "\n")
+        self.operator.controller.reload(out)
+        self._since = 0
+        return out
+

@@ -1,0 +1,280 @@
+"""The fast path of the EAFM controllers: a small SQP on eq. 4 with an exact active-set QP step.
+
+Eq. 4 for one move is a tiny NLP: n_p = 3 variables, one nonlinear equality (the EAFM-mean tool
+pose equals the target) and 2 n_q linear inequalities (every actuator in range), so the feasible
+set is the 2-dimensional redundant set cut by the ranges. IPOPT solves it well but one call
+costs milliseconds of set-up even on a trivial problem. :class:`FastSQP` takes Newton steps on
+the Lagrangian instead (exact Hessian from the same CasADi graph), each step the solution of the
+quadratic subproblem found by enumerating its active sets (at most n_p - 1 of the range
+constraints can be active together with the equality: 33 small KKT systems for Table I, solved
+in one batch). Started from a seed near a local minimum (the controller's grid), it converges
+quadratically in a few iterations; its answer is accepted only when the first-order (KKT)
+conditions hold to tolerance, the target is met and the command is in range, otherwise the
+controller runs IPOPT from the same start (``tests/control/test_fastpath.py`` checks both paths
+against IPOPT at random targets).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["FastSQP", "build_fast_function"]
+
+
+def build_fast_function(u: ca.MX, s: ca.MX, J: ca.MX, t: ca.MX, name: str) -> ca.Function:
+    """``f(u, s, lam) -> (J, dJ/du, t, dt/du, d2(J - lam t)/du2)`` from the NLP's expressions.
+
+    Parameters
+    ----------
+    u, s : casadi.MX
+        Symbols of the control signal, shape (n_p, 1), and the state, shape (n_s, 1).
+    J, t : casadi.MX
+        The (unscaled) objective and the EAFM-mean tool pose, scalars.
+    name : str
+    """
+    lam = ca.MX.sym("lam")
+    gJ = ca.gradient(J, u)
+    gt = ca.gradient(t, u)
+    H = ca.jacobian(gJ - lam * gt, u)
+    return ca.Function(name, [u, s, lam], [J, gJ, t, gt, H])
+
+
+class FastSQP:
+    """SQP with exact Hessian and an enumerated active-set QP for ``min J s.t. t(u) = t_d, lo <= K u <= hi``.
+
+    Parameters
+    ----------
+    fun : casadi.Function
+        From :func:`build_fast_function`.
+    K : ndarray, shape (n_q, n_p)
+    lo, hi : ndarray, shape (n_q,)
+    max_iter : int
+        SQP iterations at most.
+    constraint_tol : float
+        |t(u) - t_d| accepted (µm).
+    kkt_tol : float
+        Largest accepted stationarity residual of the scaled problem (J / J_ref).
+    """
+
+    def __init__(self, fun: ca.Function, K: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, max_iter: int = 30,
+                 constraint_tol: float = 1e-8, kkt_tol: float = 1e-7):
+        self.fun = fun
+        self.K = np.asarray(K, dtype=float)
+        self.lo, self.hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+        self.max_iter = max_iter
+        self.constraint_tol = constraint_tol
+        self.kkt_tol = kkt_tol
+        n_q, n_p = self.K.shape
+        self.A = np.vstack([self.K, -self.K])  # inequalities A (u + d) >= b, b = [lo; -hi]
+        self.b = np.concatenate([self.lo, -self.hi])
+        sets = [()]
+        for r in range(1, n_p):
+            sets += [c for c in itertools.combinations(range(2 * n_q), r)
+                     if not any(i + n_q in c for i in c if i < n_q)]  # not both bounds of one actuator
+        self._groups = [np.array([w for w in sets if len(w) == r], dtype=int).reshape(-1, r) if r else
+                        np.zeros((1, 0), dtype=int) for r in range(n_p)]
+        self.usable = len(sets) <= 2000
+
+    # ------------------------------------------------------------------ evaluation
+    def _eval(self, u: np.ndarray, s: np.ndarray, lam: float):
+        J, gJ, t, gt, H = self.fun(u, s, lam)
+        return (float(J), np.asarray(gJ, dtype=float).ravel(), float(t), np.asarray(gt, dtype=float).ravel(),
+                np.asarray(H, dtype=float))
+
+    # ------------------------------------------------------------------ the QP step
+    def qp(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
+           ) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """``min 1/2 d'Bd + g'd s.t. a'd = -c, A d >= slack`` (B positive definite) by its active sets.
+
+        A strictly convex QP has one KKT point, its minimum: the active sets are tried by size
+        (none, one range, two ranges), each size's KKT systems solved in one batch, and the first
+        primal and dual feasible solution is returned.
+
+        Parameters
+        ----------
+        B : ndarray, shape (n_p, n_p)
+        g, a : ndarray, shape (n_p,)
+        c : float
+        slack : ndarray, shape (2 n_q,)
+            ``b - A u``: the inequalities on the step.
+
+        Returns
+        -------
+        (d, lam, mu) or None
+            Step (n_p,), multiplier of the equality, multipliers of the inequalities (2 n_q,);
+            None when no active set gives a KKT point (an infeasible linearisation).
+        """
+        n = B.shape[0]
+        tol = 1e-9 * (1.0 + np.abs(slack))
+        for W in self._groups:
+            k, size = W.shape
+            m = n + 1 + size
+            M = np.zeros((k, m, m))
+            rhs = np.zeros((k, m))
+            M[:, :n, :n] = B
+            M[:, :n, n] = -a
+            M[:, n, :n] = a
+            rhs[:, :n] = -g
+            rhs[:, n] = -c
+            if size:
+                AW = self.A[W]  # (k, size, n)
+                M[:, :n, n + 1:] = -AW.transpose(0, 2, 1)
+                M[:, n + 1:, :n] = AW
+                rhs[:, n + 1:] = slack[W]
+            X, ok = _solve_batch(M, rhs)
+            D, MU = X[:, :n], X[:, n + 1:]
+            good = ok & np.all(MU >= -1e-12, axis=1) & np.all(D @ self.A.T >= slack - tol, axis=1)
+            if np.any(good):
+                j = int(np.flatnonzero(good)[0])
+                mu = np.zeros(self.A.shape[0])
+                mu[W[j]] = MU[j]
+                return D[j], float(X[j, n]), mu
+        return None
+
+    # ------------------------------------------------------------------ the solve
+    def solve(self, u0: np.ndarray, s: np.ndarray, target: float, jref: float | None = None
+              ) -> tuple[np.ndarray, dict]:
+        """Run the SQP from ``u0`` (shape (n_p,)) for ``target`` from state ``s`` (shape (n_s,)).
+
+        Parameters
+        ----------
+        jref : float, optional
+            Scale of the objective (default: its value at ``u0``, as the IPOPT NLP is scaled).
+
+        Returns
+        -------
+        u : ndarray, shape (n_p,)
+        info : dict
+            ``success`` (only when the KKT conditions of the scaled problem hold to ``kkt_tol``,
+            the target is met to ``constraint_tol`` and every range holds within 1e-9 µm),
+            ``iter``, ``status``, ``kkt`` and ``objective`` (unscaled, at u).
+        """
+        u = np.asarray(u0, dtype=float).copy()
+        lam = 0.0
+        info = {"success": False, "iter": 0, "status": "fast: not converged", "kkt": np.inf}
+        if not self.usable:
+            info["status"] = "fast: too many active sets"
+            return u, info
+        J, gJ, t, gt, H = self._eval(u, s, 0.0)
+        if jref is None:
+            jref = J if J > 1e-300 else 1.0
+        for it in range(self.max_iter):
+            info["iter"] = it + 1
+            g, B = gJ / jref, _reduced_convex(H / jref, gt)
+            step = self.qp(B, g, gt, t - target, self.b - self.A @ u)
+            if step is None:
+                info["status"] = "fast: infeasible step"
+                return u, info
+            d, lam_new, mu = step
+            u, J, gJ, t, gt, H = self._line_search(u, d, s, target, jref, J, t, g, lam_new)
+            lam = lam_new
+            kkt = self._kkt(gJ / jref, gt, lam, mu, u)
+            info["kkt"], info["objective"] = kkt, J
+            # the step's multipliers certify first-order optimality at the new point (no extra step)
+            if kkt <= self.kkt_tol and abs(t - target) <= self.constraint_tol:
+                if self._in_range(u):
+                    info.update(success=True, status="fast: converged")
+                return u, info
+        return u, info
+
+    def _line_search(self, u, d, s, target, jref, J, t, g, lam):
+        """Backtracking on the l1 merit ``J / J_ref + nu |t - t_d|``; the accepted point and its evaluation."""
+        nu = 2.0 * abs(lam) + 1.0
+        merit0 = J / jref + nu * abs(t - target)
+        slope = g @ d - nu * abs(t - target)  # directional derivative of the merit (a'd = -c)
+        # differences below this are round-off (of J, and of t at the constraint's tolerance)
+        noise = 1e-12 * max(1.0, abs(merit0)) + nu * 1e-2 * self.constraint_tol
+        polish = np.max(np.abs(d)) <= 1e-7 * (1.0 + np.max(np.abs(u)))  # a last correction: taken whole
+        alpha = 1.0
+        for _ in range(12):
+            un = u + alpha * d
+            Jn, gJn, tn, gtn, Hn = self._eval(un, s, lam * jref)
+            if polish or Jn / jref + nu * abs(tn - target) <= merit0 + 1e-4 * alpha * min(slope, 0.0) + noise:
+                return un, Jn, gJn, tn, gtn, Hn
+            alpha *= 0.5
+        return un, Jn, gJn, tn, gtn, Hn
+
+    def _kkt(self, g: np.ndarray, gt: np.ndarray, lam: float, mu: np.ndarray, u: np.ndarray) -> float:
+        """Stationarity and complementarity residual of the scaled problem at u."""
+        stat = g - lam * gt - self.A.T @ mu
+        comp = np.abs(mu * (self.A @ u - self.b))
+        return float(max(np.max(np.abs(stat)), np.max(comp, initial=0.0)))
+
+    def _in_range(self, u: np.ndarray) -> bool:
+        q = self.K @ u
+        return bool(np.all(q >= self.lo - 1e-9) and np.all(q <= self.hi + 1e-9))
+
+
+def _reduced_convex(B: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """B with its curvature on the tangent space of ``a'd = 0`` made positive (the rest untouched).
+
+    Only the reduced Hessian ``Z'BZ`` (Z an orthonormal basis of a's null space) matters to the
+    QP step; a negative eigenvalue there is flipped (a descent direction out of a saddle) and a
+    vanishing one raised to a floor 1e-12 times the largest, so the step's KKT system is regular.
+    Curvature along the valley of the redundant set is often tiny: a floor relative to the full
+    Hessian (large across the valley) would cut the Newton step to a crawl.
+
+    Parameters
+    ----------
+    B : ndarray, shape (n_p, n_p)
+    a : ndarray, shape (n_p,)
+
+    Returns
+    -------
+    ndarray, shape (n_p, n_p)
+    """
+    B = 0.5 * (B + B.T)
+    Z = _null_basis(a)
+    R = Z.T @ B @ Z
+    try:
+        np.linalg.cholesky(R)
+        if np.min(np.diag(R)) > 1e-12 * np.max(np.abs(R)):
+            return B  # positive definite on the tangent space: nothing to change
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eigh(R)
+    floor = 1e-12 * max(1e-300, float(np.max(np.abs(w))))
+    target = np.maximum(np.abs(w), floor)
+    if np.all(target == w):
+        return B
+    return B + Z @ ((V * (target - w)) @ V.T) @ Z.T
+
+
+def _solve_batch(M: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the systems ``M[k] x = rhs[k]``; the solutions (k, m) and which are valid (k,).
+
+    A singular system (dependent active constraints) is marked invalid, and so is a solution
+    whose residual shows it is not one (a nearly singular system). Scale-free: the KKT systems
+    mix the Hessian (up to ~1e3) with unit-scale constraint rows, so a determinant test misjudges.
+    """
+    try:
+        X = np.linalg.solve(M, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        X = np.zeros_like(rhs)
+        for k in range(M.shape[0]):
+            try:
+                X[k] = np.linalg.solve(M[k], rhs[k])
+            except np.linalg.LinAlgError:
+                X[k] = np.nan
+    res = np.abs(np.einsum("kij,kj->ki", M, X) - rhs).max(axis=1)
+    scale = np.abs(M).max(axis=(1, 2)) * np.abs(X).max(axis=1) + np.abs(rhs).max(axis=1)
+    ok = np.all(np.isfinite(X), axis=1) & (res <= 1e-9 * (scale + 1e-300))
+    return np.where(ok[:, None], X, 0.0), ok
+
+
+def _null_basis(a: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the vectors orthogonal to ``a`` (shape (n,)), shape (n, n - 1), by one
+    Householder reflection (the identity's last n - 1 columns when a = 0)."""
+    n = a.shape[0]
+    na = float(np.linalg.norm(a))
+    if na == 0.0:
+        return np.eye(n)[:, 1:]
+    v = a / na
+    w = v.copy()
+    w[0] += 1.0 if v[0] >= 0 else -1.0  # reflect v onto -+e1 (no cancellation)
+    H = np.eye(n) - 2.0 * np.outer(w, w) / float(w @ w)
+    return H[:, 1:]
+

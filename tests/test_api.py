@@ -1,0 +1,42 @@
+"""docs/api.md: its ``python`` examples run, in order, in a scratch folder with the repository's configs."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "api.md"
+
+
+def blocks() -> list[str]:
+    """The ``python`` code blocks of docs/api.md, in order."""
+    return re.findall(r"^```python\n(.*?)^```", DOC.read_text(encoding="utf-8"), flags=re.S | re.M)
+
+
+def test_the_page_has_examples_of_every_part_of_the_api():
+    code = "\n".join(blocks())
+    for name in ("load_stage", "collect", "train", "Controller", "solve", "Operator", "move", "read_measurements",
+                 "reload", "UnreachableTargetError"):
+        assert name in code, name
+
+
+def test_api_md_examples_run(tmp_path, capsys):
+    (tmp_path / "configs").symlink_to(ROOT / "configs")
+    old = os.getcwd()
+    os.chdir(tmp_path)
+    namespace: dict = {"__name__": "api_md"}
+    try:
+        for k, code in enumerate(blocks()):
+            try:
+                exec(compile(code, f"docs/api.md block {k + 1}", "exec"), namespace)
+            except Exception as exc:  # name the block that failed
+                pytest.fail(f"docs/api.md block {k + 1} raised {type(exc).__name__}: {exc}\n{code}")
+    finally:
+        os.chdir(old)
+    out = capsys.readouterr().out
+    assert out.count("refused:") == 2
+    assert len(re.findall(r"^\d: target \d+, predicted", out, re.M)) == 3
