@@ -65,7 +65,7 @@ CAPTURED = {
     "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000")),
     "diagnosis_confusion": ("scripts/diagnosis_confusion.py", ()),
     "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
-    "bench_learn": ("scripts/bench_learn.py", ("--rigs", "3", "--moves", "1000", "--refit-every", "250")),
+    "bench_learn": ("scripts/bench_learn.py", ("--rigs", "2", "--moves", "1000", "--refit-every", "250")),
 }
 SECTIONS = ("main_job", "paper_scale", "bench_rigs", *CAPTURED)
 #: Quantities of the per-offset table of the paper-scale rig: (label, controller, key).
