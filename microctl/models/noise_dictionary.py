@@ -343,16 +343,12 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         p_rest = dict(zip(rest.tolist(), _max_stat_pvalues(r2, v, Phi[:, rest])
                           * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
         options = []  # (adjusted p, gain, needed gain, what, c, w)
-        current = _with_tilt(Phi[:, chosen], tilt_inputs, tilt)  # the model's features, tilt last
         for j in order:
             lj, cj = _fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
             g = lj - ll
-            need = 0.5 * math.log(n)
-            v1 = np.hstack([np.ones((n, 1)), _with_tilt(Phi[:, chosen + [int(j)]], tilt_inputs, tilt)]) @ cj
-            ok = g > 0 and _gain_without_top_rows(r2, v, v1, current, Phi[:, int(j)]) >= need
-            options.append((p_rest[int(j)] if ok else 1.0, g, need, int(j), cj, tilt))
+            options.append((p_rest[int(j)] if g > 0 else 1.0, g, 0.5 * math.log(n), int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
-            options.append(_tilt_option(r2, v, ll, Phi[:, chosen], tilt_inputs, m))
+            options.append(_tilt_option(r2, ll, Phi[:, chosen], tilt_inputs, m))
         best = min(options, key=lambda o: (o[0], -o[1])) if options else None
         if best is None or best[0] >= alpha or best[1] < best[2]:
             break
@@ -369,44 +365,20 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
                      None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values))
 
 
-def _tilt_option(r2: np.ndarray, v: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: int) -> tuple:
+def _tilt_option(r2: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: int) -> tuple:
     """The tilt as an entry option ``(adjusted p, gain, needed gain, "tilt", c, w)`` against the
-    current variance v (log-likelihood ll, features Phi): its likelihood-ratio statistic referred
-    to chi2 with k + 1 degrees of freedom, Bonferroni over the m candidates in play; p = 1 unless
-    the gain reaches the need with the top rows set aside (:func:`_gain_without_top_rows`)."""
+    current fit (log-likelihood ll, features Phi): its likelihood-ratio statistic referred to chi2
+    with k + 1 degrees of freedom, Bonferroni over the m candidates in play."""
     n, k = Z.shape
     lt, ct, w = _fit_tilt(r2, Phi, Z)
     g = lt - ll
-    need = 0.5 * (k + 1) * math.log(n)
-    col = np.exp(np.clip(Z @ w, -50, 50))
-    v1 = np.hstack([np.ones((n, 1)), Phi]) @ ct[:-1] + ct[-1] * col
-    ok = g > 0 and _gain_without_top_rows(r2, v, v1, Phi, col) >= need
-    return (float(stats.chi2.sf(2 * g, k + 1)) * m if ok else 1.0, g, need, "tilt", ct, w)
-
+    return (float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g, 0.5 * (k + 1) * math.log(n), "tilt", ct, w)
 
 #: the tilt's slope bound per standardised pose coordinate: its variance grows at most e^4-fold
 #: per standard deviation of the training poses (a lightly loaded ball's scatter, planted at 2 in
-#: the tests, is well inside; without a bound the fit puts a spike of variance on one or two
-#: outlying rows, which is not a source of the stage)
+#: the tests, is well inside; unbounded, the fit can put a spike of variance on one or two
+#: outlying rows)
 TILT_MAX_SLOPE = 4.0
-#: rows whose log-likelihood gains are set aside before a candidate's gain is compared with its
-#: BIC need: a source has to be supported by the bulk of the data, not carried by a few
-#: outlying rows (which the Gaussian null of the p-values does not describe)
-TOP_ROWS = 3
-
-
-def _gain_without_top_rows(r2: np.ndarray, v0: np.ndarray, v1: np.ndarray, Phi: np.ndarray, new: np.ndarray,
-                           top: int = TOP_ROWS) -> float:
-    """Log-likelihood gain of the feature column ``new`` over the variance model without it
-    (features Phi), both refitted on the rows left once the ``top`` rows that gain most (variance
-    v1 against v0) are set aside: a source must be supported by the bulk of the data."""
-    d = 0.5 * (np.log(v0) + r2 / v0) - 0.5 * (np.log(v1) + r2 / v1)
-    keep = np.sort(np.argsort(d)[: len(d) - top])
-    l0, _ = _fit_variance(r2[keep], Phi[keep])
-    l1, _ = _fit_variance(r2[keep], np.hstack([Phi[keep], new[keep, None]]))
-    return float(l1 - l0)
-
-
 def _with_tilt(Phi: np.ndarray, Z: np.ndarray | None, w: np.ndarray | None) -> np.ndarray:
     """Phi with the tilt's column exp(Z w) appended when the tilt is in the model."""
     return Phi if w is None else np.hstack([Phi, np.exp(np.clip(Z @ w, -50, 50))[:, None]])

@@ -251,12 +251,15 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
               "p_adjusted": [float(p) for p in sel.p_values], "alpha": SELECTION_ALPHA,
               "candidates": len(cands.names) + 1}
     model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time)
-    # a source the fit inside the bound switches off (its share of the prior variance below
-    # PRUNE_SHARE at every training move) is not a source of this stage: refit without it
+    # a source the fit inside the bound does not support (its coefficient within one Laplace
+    # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training
+    # move) is not a source of this stage: refit without it
     keep = _effective_sources(model, data.X) if names else []
     if len(keep) < len(names):
         record["dropped_in_fit"] = [names[j] for j in range(len(names)) if j not in keep]
         record["selected"] = [names[j] for j in keep]
+        record["gains_nats"] = [record["gains_nats"][j] for j in keep]
+        record["p_adjusted"] = [record["p_adjusted"][j] for j in keep]
         model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
                               [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
                               max_time)
@@ -266,6 +269,9 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
 #: a selected source whose fitted share of g's prior variance stays below this at every training
 #: move is dropped (the fit inside the bound switched it off; keeping it would only name it)
 PRUNE_SHARE = 1e-3
+#: ... and so is one whose fitted coefficient is below this many of its Laplace standard errors
+#: (the bound, where g's GP can take up what the parametric selection saw, does not support it)
+PRUNE_Z = 1.0
 
 
 def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time) -> FittedVHGPR:
@@ -278,11 +284,15 @@ def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time) ->
 
 def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:
     """Indices of the sources whose share ``c_j phi_j(x) / V(x)`` of the fitted prior variance
-    (:mod:`microctl.gp.noise_prior` eq. 1) reaches :data:`PRUNE_SHARE` at some row of X."""
+    (:mod:`microctl.gp.noise_prior` eq. 1) reaches :data:`PRUNE_SHARE` at some row of X and whose
+    coefficient is at least :data:`PRUNE_Z` Laplace standard errors (``info["noise_parameters"]``)."""
     prior = model.g_prior_mean
     D = prior.design(X)
     share = D * prior.coef / (D @ prior.coef)[:, None]
-    return [j for j in range(prior.p) if float(np.max(share[:, j + 1])) >= PRUNE_SHARE]
+    par = model.info.get("noise_parameters") or {}
+    c, c_std = np.asarray(par.get("c", prior.coef)), np.asarray(par.get("c_std", np.zeros(prior.p + 1)))
+    return [j for j in range(prior.p)
+            if float(np.max(share[:, j + 1])) >= PRUNE_SHARE and c[j + 1] >= PRUNE_Z * c_std[j + 1]]
 
 
 def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:

@@ -162,27 +162,22 @@ def test_max_statistic_p_values_are_calibrated_on_the_correlated_dictionary(afm)
     assert 16 <= hits <= 46, hits
 
 
-def test_two_outlying_rows_do_not_make_a_source(afm, monkeypatch):
-    """Homoscedastic residuals with two rows 12 sigma out at the pose's extremes: a free tilt can
-    put a spike of variance on them, and a bump in one actuator's stroke can sit on them (gains
-    of tens of nats; a tilt of 88 nats on a sim_paper log before this rule), but no source of
-    the stage has that shape, so nothing enters: each candidate's gain must reach its need with
-    the 3 rows that gain most set aside. With the old rule (no rows set aside, tilt slope +-20)
-    the same data select a source, so the test can fail."""
-    import microctl.models.noise_dictionary as nd
+def test_a_source_the_bound_fit_does_not_support_is_dropped():
+    """training._effective_sources keeps a source only when the fit inside the bound supports it:
+    its coefficient at least PRUNE_Z Laplace standard errors and its share of the prior variance
+    at least PRUNE_SHARE somewhere (the sim_paper log of tests/diagnosis, where the selection saw
+    a tilt of 88 nats that the bound fit set to 9e-14 +- 1.5e-7, is the end-to-end case)."""
+    from types import SimpleNamespace
 
-    rng = np.random.default_rng(5)
-    X = _inputs(afm, 200, rng)
-    U = X[:, afm.n_s:]
-    Z = (U - U.mean(axis=0)) / U.std(axis=0)
-    r = 0.05 * rng.standard_normal(200)
-    far = np.argsort(Z @ np.array([1.0, 1.0, 0.0]))[-2:]
-    r[far] = 0.6 * np.sign(r[far] + 1e-12)
-    cands = candidate_features(afm).rescaled(X)
-    sel = select_features(r, cands.values(X), cands.names, tilt_inputs=Z)
-    assert not sel.names, sel
-    monkeypatch.setattr(nd, "TILT_MAX_SLOPE", 20.0)
-    monkeypatch.setattr(nd, "TOP_ROWS", 0)
-    monkeypatch.setattr(nd._gain_without_top_rows, "__defaults__", (0,))
-    old = select_features(r, cands.values(X), cands.names, tilt_inputs=Z)
-    assert old.names, old
+    from microctl.gp.noise_prior import LogVarianceMean
+    from microctl.models.training import _effective_sources
+
+    X = np.linspace(0.0, 1.0, 11)[:, None]
+    prior = LogVarianceMean(np.array([[1.0], [1.0], [1.0]]), np.zeros(3), np.log(1.0),
+                            np.log(np.array([0.5, 1e-9, 0.5])))
+    # source 0: well supported; 1: negligible share; 2: coefficient within one SE of zero
+    info = {"noise_parameters": {"c": [1.0, 0.5, 1e-9, 0.5], "c_std": [0.1, 0.1, 0.1, 0.6]}}
+    model = SimpleNamespace(g_prior_mean=prior, info=info)
+    assert _effective_sources(model, X) == [0]
+    info["noise_parameters"]["c_std"] = [0.1, 0.1, 0.1, 0.1]
+    assert _effective_sources(model, X) == [0, 2]
