@@ -254,7 +254,7 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     # a source the fit inside the bound does not support (its coefficient within one Laplace
     # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training
     # move) is not a source of this stage: refit without it
-    keep = _effective_sources(model, data.X) if names else []
+    keep = _effective_sources(model, model.X) if names else []
     if len(keep) < len(names):
         record["dropped_in_fit"] = [names[j] for j in range(len(names)) if j not in keep]
         record["selected"] = [names[j] for j in keep]
@@ -284,7 +284,8 @@ def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time) ->
 
 def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:
     """Indices of the sources whose share ``c_j phi_j(x) / V(x)`` of the fitted prior variance
-    (:mod:`microctl.gp.noise_prior` eq. 1) reaches :data:`PRUNE_SHARE` at some row of X and whose
+    (:mod:`microctl.gp.noise_prior` eq. 1) reaches :data:`PRUNE_SHARE` at some row of X (the
+    model's own training inputs ``model.X``, in the coordinates its prior mean reads) and whose
     coefficient is at least :data:`PRUNE_Z` Laplace standard errors (``info["noise_parameters"]``)."""
     prior = model.g_prior_mean
     D = prior.design(X)
