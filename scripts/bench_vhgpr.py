@@ -12,7 +12,17 @@ repeats and the mean negative log predictive density (NLPD, Gaussian predictive)
 
 plus the correlation of the learned mean log-noise with the true one.
 
-Usage: ``python scripts/bench_vhgpr.py [--repeats 3] [--sizes 125,500,2000]``.
+At scale (``--scale 2000,5000,20000``): a 3-D synthetic whose noise depends on an input the
+mean ignores (:func:`planted3d`), hold-out 2000 points: the exact VHGPR (defaults, and
+``g_start="both"``) and scikit-learn where n <= 2000, the sparse VHGPR (:mod:`microctl.gp.sparse`,
+default settings) at every n, fit time, NLPD, and the time of :func:`microctl.gp.sparse.update`
+with 10 new points. ``--stage-days D``: a simulated stage log (``configs/stage/sim_paper.yaml``,
+200 covering-design moves a day for D days, hold-out 2000 moves with another seed): the residual
+model (``microctl train`` defaults) exact on the first 2000 moves, sparse on 2000 and on all,
+its hold-out NLPD and the controller's per-call CPU time (median over 15 targets) on each.
+
+Usage: ``python scripts/bench_vhgpr.py [--repeats 3] [--sizes 125,500,2000] [--scale 2000,5000,20000]
+[--stage-days 100]``.
 scikit-learn is needed by this script only (``pip install microctl[bench]``).
 """
 
@@ -42,6 +52,15 @@ def planted(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     f = np.sin(2 * np.pi * x) + 0.5 * x
     sd = 0.1 + 0.5 * np.exp(-0.5 * ((x - 0.7) / 0.15) ** 2)
     return x[:, None], f + sd * rng.standard_normal(n), f, 2 * np.log(sd)
+
+
+def planted3d(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """x ~ U(-1, 1)^3; f = sin(2 x0) + x1^2 / 2; log noise variance -3 + 1.5 x2 + x0 (x2: not in f)."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-1.0, 1.0, (n, 3))
+    f = np.sin(2.0 * X[:, 0]) + 0.5 * X[:, 1] ** 2
+    g = -3.0 + 1.5 * X[:, 2] + X[:, 0]
+    return X, f + np.exp(0.5 * g) * rng.standard_normal(n), f, g
 
 
 def gauss_nlpd(y: np.ndarray, mean: np.ndarray, var: np.ndarray) -> float:
@@ -77,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--big-repeats", type=int, default=1, help="repeats for n > 500")
     ap.add_argument("--sizes", default="125,500,2000", help="synthetic training sizes")
     ap.add_argument("--no-sklearn", action="store_true", help="skip the scikit-learn baseline")
+    ap.add_argument("--scale", default="", help="sizes of the 3-D scale section (e.g. 2000,5000,20000; empty: skip)")
+    ap.add_argument("--stage-days", type=int, default=0, help="days of 200 moves of the stage section (0: skip)")
     args = ap.parse_args(argv)
 
     import scipy
@@ -132,8 +153,100 @@ def main(argv: list[str] | None = None) -> int:
           " both with one BLAS thread; ratio = vhgpr / sklearn; NLPD in nats on the hold-out set of 2000"
           " points (mcycle: train = test); corr g = correlation of the learned mean log noise variance"
           " with the true one; iters = L-BFGS-B iterations over all runs.")
+    if args.scale:
+        scale_section([int(v) for v in args.scale.split(",")], args.no_sklearn)
+    if args.stage_days:
+        stage_section(args.stage_days)
     print(f"load average at the end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     return 0
+
+
+def scale_section(sizes: list[int], no_sklearn: bool) -> None:
+    """Exact, exact with g_start="both", scikit-learn (n <= 2000) and sparse on the 3-D synthetic."""
+    from microctl.gp.sparse import SparseVHGPR, update
+
+    Xt, yt, ft, gt = planted3d(2000, seed=999)
+    oracle = gauss_nlpd(yt, ft, np.exp(gt))
+    print()
+    print(f"scale: 3-D synthetic (planted3d), hold-out 2000 points, oracle NLPD {oracle:.4f}; one BLAS thread")
+    header = f"{'n':>6s} {'model':22s} {'fit s':>8s} {'NLPD':>8s} {'-oracle':>8s} {'corr g':>7s} {'update10 s':>10s}"
+    print(header)
+    print("-" * len(header))
+    for n in sizes:
+        X, y, _, _ = planted3d(n, seed=n + 7)
+        rows = []
+        if n <= 2000:
+            rows.append(("exact (defaults)", lambda: VHGPR().fit(X, y)))
+            rows.append(("exact (g_start=both)", lambda: VHGPR(g_start="both").fit(X, y)))
+        rows.append(("sparse (M=256)", lambda: SparseVHGPR().fit(X, y)))
+        for label, fit in rows:
+            t, model = timed(fit, 1)
+            p = model.predict(Xt)
+            nl = gauss_nlpd(yt, p.y_mean, p.y_var)
+            upd = ""
+            if model.posterior_form == "sparse":
+                Xn, yn, _, _ = planted3d(10, seed=n + 8)
+                upd = f"{timed(lambda: update(model, Xn, yn), 5)[0]:10.3f}"
+            print(f"{n:6d} {label:22s} {t:8.2f} {nl:8.4f} {nl - oracle:8.4f} "
+                  f"{float(np.corrcoef(p.g_mean, gt)[0, 1]):7.3f} {upd:>10s}", flush=True)
+        if n <= 2000 and not no_sklearn:
+            t, sk = timed(lambda: fit_sklearn(X, y), 1)
+            m, sd = sk.predict(Xt, return_std=True)
+            nl = gauss_nlpd(yt, m, sd**2)
+            print(f"{n:6d} {'scikit-learn':22s} {t:8.2f} {nl:8.4f} {nl - oracle:8.4f} {'':>7s} {'':>10s}", flush=True)
+    print("fit s: wall-clock seconds of one fit (sparse: includes the exact fit of its hyperparameters on "
+          "1000 points); update10 s: median of 5 updates with 10 new points; corr g: correlation of the "
+          "learned mean log noise variance with the true one.")
+
+
+def stage_section(days: int) -> None:
+    """A simulated stage operated ``days`` x 200 moves: exact vs sparse residual models, NLPD, controller time."""
+    import tempfile
+
+    from microctl import api
+    from microctl.control.controller import OptimalController
+    from microctl.measurement.log import read_log
+    from microctl.models.eafm import EAFM
+    from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
+
+    stage = api.load_stage(Path(__file__).resolve().parents[1] / "configs" / "stage" / "sim_paper.yaml")
+    afm = stage.afm
+    n = 200 * days
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        api.collect(stage, n, Path(tmp) / "log.csv", seed=11)
+        api.collect(stage, 2000, Path(tmp) / "hold.csv", seed=12)
+        log = read_log(Path(tmp) / "log.csv", stage.config.stage)
+        hold = residual_dataset(read_log(Path(tmp) / "hold.csv", stage.config.stage), afm)
+        data = residual_dataset(log, afm)
+        collect_s = time.perf_counter() - t0
+    print()
+    print(f"stage: {stage.name}, {days} days x 200 moves = {n} training moves (collected with the hold-out's 2000 "
+          f"in {collect_s:.1f} s); residual model with the train command's defaults; NLPD on the hold-out moves "
+          "(µm); controller: CPU ms per solve, median over 15 targets in [4, 26] µm from the zero state")
+    header = f"{'moves':>6s} {'model':10s} {'fit s':>8s} {'NLPD':>8s} {'inputs':>7s} {'ctl ms':>7s}"
+    print(header)
+    print("-" * len(header))
+    sub = type(data)(X=data.X[:2000], y=data.y[:2000], x_names=data.x_names)
+    cases = [(2000, "exact", sub), (2000, "sparse", sub)]
+    if n > 2000:
+        cases.append((n, "sparse", data))
+    targets = np.linspace(4.0, 26.0, 15)
+    for moves, form, d in cases:
+        t0 = time.perf_counter()
+        model = train_residual_model(d, afm, ResidualModelSettings(gp=form))
+        fit_s = time.perf_counter() - t0
+        ctl = OptimalController(EAFM(afm, model))
+        state = stage.zero_state()
+        ctl.solve(float(targets[0]), state)  # build the solver once
+        cpu = []
+        for tg in targets:
+            c0 = time.process_time()
+            ctl.solve(float(tg), state)
+            cpu.append(time.process_time() - c0)
+        print(f"{moves:6d} {form:10s} {fit_s:8.1f} {model.nlpd(hold.X, hold.y):8.4f} {model.X.shape[0]:7d} "
+              f"{1e3 * statistics.median(cpu):7.2f}", flush=True)
+    print("inputs: the points the posterior holds (training moves, or inducing points).")
 
 
 if __name__ == "__main__":

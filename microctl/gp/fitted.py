@@ -122,6 +122,11 @@ class FittedVHGPR:
         The noise model (:mod:`microctl.gp.noise_models`) that built g's prior mean; None (a
         model built in memory, or a file of format 1 or 2 written before the name was stored):
         ``"physical"`` when there are features, else ``"hgp"``.
+    posterior_form : {"exact", "sparse"}
+        ``"exact"``: the fields above as a VHGPR fit writes them. ``"sparse"``
+        (:mod:`microctl.gp.sparse`): ``X`` holds the M inducing inputs, ``f_chol``/``g_chol``
+        the factors of ``K(Z, Z) + R`` with R the full pseudo-noise covariance of the sparse
+        posterior (same prediction formulas), ``log_lambda`` zeros (unused).
 
     Every field is declared once with its storage role (:meth:`stored`); the model file
     (:mod:`microctl.gp.modelfile`) derives its arrays from them.
@@ -159,6 +164,7 @@ class FittedVHGPR:
     noise_model_name: str | None = _stored("meta", default=None)
     g_feature_shapes: tuple[str, ...] = _stored("meta", default=())
     g_feature_params: tuple = _stored("meta", default=())
+    posterior_form: str = _stored("meta", default="exact")
 
     @classmethod
     def stored(cls, role: str) -> tuple[str, ...]:

@@ -30,9 +30,13 @@ __all__ = ["FORMAT_VERSION", "READABLE_VERSIONS", "write_model", "read_model"]
 #: Version of the ``.npz`` model file written by :func:`write_model` (2: optional linear
 #: kernel part of f and parametric prior mean of g; version 1 files read unchanged). The
 #: noise model's name (``meta_json["noise_model"]``) is optional: files without it read
-#: with the name derived from their arrays.
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: with the name derived from their arrays. Version 3 adds the optional
+#: ``meta_json["posterior_form"]`` (``"sparse"``: :mod:`microctl.gp.sparse`; absent: exact), so
+#: that a microctl reading version 2 refuses a sparse model instead of misreading it.
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
+#: The posterior forms (:class:`~microctl.gp.fitted.FittedVHGPR` ``posterior_form``).
+POSTERIOR_FORMS = ("exact", "sparse")
 
 # --------------------------------------------------------------------------- writing
 
@@ -55,7 +59,10 @@ def write_model(model: Any, path: str | Path) -> None:
         v = getattr(model, name)
         arrays[name] = np.array([] if v is None else [float(v)], dtype=np.float64)
     meta = {name: _META_WRITE.get(name, _same)(getattr(model, name)) for name in cls.stored("meta")
-            if name != "noise_model_name" and not (name in _WRITTEN_WHEN_SET and not getattr(model, name))}
+            if name not in ("noise_model_name", "posterior_form")
+            and not (name in _WRITTEN_WHEN_SET and not getattr(model, name))}
+    if model.posterior_form != "exact":
+        meta["posterior_form"] = model.posterior_form
     if model.noise_model != _derived_noise_model(model):  # the first two models' files stay as they were
         meta["noise_model"] = model.noise_model
     arrays["meta_json"] = np.array(json.dumps(meta))
@@ -133,6 +140,9 @@ def read_model(cls: type, path: str | Path) -> Any:
         raise DataError(f"{path}: malformed model file: {exc}") from None
     _check_shapes(path, kw, cls.shapes())
     _check_noise_model(path, kw)
+    if kw["posterior_form"] not in POSTERIOR_FORMS:
+        raise DataError(f"{path}: malformed model file: posterior_form {kw['posterior_form']!r} is not one of "
+                        f"{', '.join(POSTERIOR_FORMS)}")
     for name in cls.stored("array") + cls.stored("optional_array"):
         if kw.get(name) is not None:
             freeze(kw[name])
@@ -191,6 +201,7 @@ def _fields_from(cls: type, data: dict) -> dict[str, Any]:
         kw[name] = convert(meta[name] if not default else meta.get(name, default[0]))
     name = meta.get("noise_model")
     kw["noise_model_name"] = None if name is None else str(name)
+    kw["posterior_form"] = str(meta.get("posterior_form", "exact"))
     for name in cls.stored("optional_array"):
         if name in data:
             kw[name] = np.asarray(data[name], dtype=np.float64)
@@ -351,9 +362,16 @@ def _check_ranges(kw: dict, cls: type, fail: Any) -> None:
 
 
 def _check_belong_together(kw: dict, model: Any, fail: Any) -> np.ndarray:
-    """X and the encoded outputs standardised, the factors those of the stored kernels; the checked rows."""
+    """X and the encoded outputs standardised, the factors those of the stored kernels; the checked rows.
+
+    A sparse model (``posterior_form == "sparse"``) stores inducing inputs, not the data, and
+    factors of K(Z, Z) + R with R a full pseudo-noise covariance: there, R must be symmetric
+    positive semi-definite (checked on every eigenvalue) instead.
+    """
     X = kw["X"]
     n, d = X.shape
+    if kw["posterior_form"] == "sparse":
+        return _check_sparse_factors(kw, model, fail)
     col_mean, col_std = X.mean(axis=0), X.std(axis=0)
     for j in range(d):
         const_tol = _STANDARD_TOL * max(1.0, abs(float(kw["x_mean"][j])))
@@ -391,6 +409,22 @@ def _check_belong_together(kw: dict, model: Any, fail: Any) -> np.ndarray:
                        f"{' + Λ⁻¹' if label == 'g' else ' + noise'}); the file was edited or assembled from two "
                        "models, retrain it")
     return rows
+
+
+def _check_sparse_factors(kw: dict, model: Any, fail: Any) -> np.ndarray:
+    """A sparse model's ``L Lᵀ − K(Z, Z)`` positive semi-definite for f and g; all rows checked."""
+    Z = kw["X"]
+    for label, L, k in (("f", kw["f_chol"], model.f_kernel), ("g", kw["g_chol"], model.g_kernel)):
+        if np.any(np.triu(L, 1) != 0):
+            raise fail(f"the stored arrays do not belong together: {label}_chol is not lower triangular; the file "
+                       "was edited, retrain it")
+        R = L @ L.T - k.matrix(Z, Z)
+        scale = float(np.max(np.abs(np.diag(L @ L.T)))) or 1.0
+        if not np.all(np.isfinite(R)) or float(np.linalg.eigvalsh(0.5 * (R + R.T)).min()) < -1e-6 * scale:
+            raise fail(f"the stored arrays do not belong together: {label}_chol {label}_cholᵀ − K_{label}(Z, Z) is not "
+                       f"positive semi-definite (a sparse model's pseudo-noise covariance); the file was edited or "
+                       "assembled from two models, retrain it")
+    return np.unique(np.linspace(0, Z.shape[0] - 1, min(Z.shape[0], _N_CHECK_ROWS)).astype(int))
 
 
 def _check_variances(kw: dict, model: Any, rows: np.ndarray, fail: Any) -> None:

@@ -27,7 +27,7 @@ from microctl.models.eafm import bind_to_stage
 from microctl.models.noise_dictionary import candidate_features, select_features
 from microctl.util.fields import setting, validate_settings
 
-__all__ = ["NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
+__all__ = ["GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
            "noise_features_for", "train_residual_model", "noise_summary", "save_model"]
 
 
@@ -69,10 +69,18 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
     return ResidualData(X=np.hstack([s, u]), y=y, x_names=names)
 
 
-#: Most rows a residual model is trained on: the VHGPR's cost grows as n³ (3000 rows took over
-#: 4 minutes on a loaded 2-core machine, 200 000 do not fit in memory); a larger log is refused
+#: Most rows the exact VHGPR is trained on: its cost grows as n³ (3000 rows took over 4 minutes
+#: on a loaded 2-core machine, 200 000 do not fit in memory). Above it the default model is the
+#: sparse one (``gp: auto``, :mod:`microctl.gp.sparse`); ``gp: exact`` refuses a larger log
 #: before any work with the advice to subsample it.
 MAX_TRAIN_ROWS = 2000
+#: Most rows the sparse model is trained on (its n x M matrices: ~3 GB at M = 256).
+MAX_SPARSE_ROWS = 100_000
+#: Rows of the seeded random subset on which the sparse model's hyperparameters are fitted.
+SPARSE_SUBSET = 1000
+#: The residual GP's forms: ``exact`` (VHGPR), ``sparse`` (inducing points), ``auto`` (exact up to
+#: :data:`MAX_TRAIN_ROWS` rows, sparse above).
+GP_FORMS = ("auto", "exact", "sparse")
 
 #: Prior variance of the affine trend's coefficients (standardised units: a trend of about
 #: three output standard deviations per input standard deviation is a priori plausible; the
@@ -124,6 +132,12 @@ class ResidualModelSettings:
         L-BFGS-B iterations per run (None: the trainer's size-dependent default).
     seed : int
         Seed of the restarts.
+    gp : str
+        The GP's form: ``"auto"`` (default: the exact VHGPR up to :data:`MAX_TRAIN_ROWS` rows,
+        the sparse one above), ``"exact"``, ``"sparse"`` (:mod:`microctl.gp.sparse`:
+        hyperparameters from :data:`SPARSE_SUBSET` rows, the posterior on ``inducing`` points).
+    inducing : int
+        Inducing points of the sparse form (the controller's cost grows with them, not with n).
     """
 
     noise_model: str = setting("dictionary", choices=NOISE_MODELS)
@@ -133,12 +147,24 @@ class ResidualModelSettings:
     restarts: int = setting(2, lo=1, hi=100)
     max_iter: int | None = setting(500, lo=1, hi=100_000, none_ok=True, kind="int")
     seed: int = setting(0, lo=0, hi=2**63 - 1)
+    gp: str = setting("auto", choices=GP_FORMS)
+    inducing: int = setting(256, lo=2, hi=5000)
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
         if self.se == "off" and not self.linear_trend:
             raise ConfigError("residual model setting se: 'off' needs linear_trend: true (without the trend and "
                               "the SE part the mean correction would be a constant); use se: auto or on")
+
+
+def uses_sparse(n: int, settings: ResidualModelSettings) -> bool:
+    """Whether a residual model of n rows is fitted in the sparse form (``gp``, :data:`GP_FORMS`)."""
+    return settings.gp == "sparse" or (settings.gp == "auto" and n > MAX_TRAIN_ROWS)
+
+
+def max_train_rows(settings: ResidualModelSettings) -> int:
+    """Most rows a residual model with these settings is trained on."""
+    return MAX_TRAIN_ROWS if settings.gp == "exact" else MAX_SPARSE_ROWS
 
 
 def actuator_step_features(afm: AnalyticForwardModel, actuators: Sequence[int] | None = None) -> NoiseFeatures:
@@ -207,11 +233,19 @@ def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSetting
     """One VHGPR fit of the residual with the settings' mean model and the given noise model."""
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
-    return VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
-                 se=st.se if st.linear_trend else "on", noise_features=features, noise_model=noise_model,
-                 n_restarts=st.restarts,
-                 propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
-                 max_iter=st.max_iter, random_state=st.seed, max_time=max_time).fit(data.X, data.y)
+    sparse = uses_sparse(len(data.y), st)
+    trainer = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
+                    se=st.se if st.linear_trend else "on", noise_features=features, noise_model=noise_model,
+                    n_restarts=st.restarts,
+                    propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
+                    max_iter=st.max_iter, random_state=st.seed, max_time=max_time,
+                    g_start="both" if sparse else "f")
+    if sparse:
+        from microctl.gp.sparse import SparseVHGPR
+
+        return SparseVHGPR(n_inducing=st.inducing, subset=SPARSE_SUBSET, hyper=trainer,
+                           random_state=st.seed).fit(data.X, data.y)
+    return trainer.fit(data.X, data.y)
 
 
 def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,

@@ -388,14 +388,29 @@ def test_experiment_sizes_bounded_at_load(tmp_path, capsys, section, value, need
 
 
 def test_train_refuses_more_rows_than_it_can_fit(tmp_path, capsys, monkeypatch):
-    import microctl.cli.commands.train as train_cmd
+    import microctl.models.training as training
 
-    monkeypatch.setattr(train_cmd, "MAX_TRAIN_ROWS", 20)
+    monkeypatch.setattr(training, "MAX_TRAIN_ROWS", 20)
     log = tmp_path / "log.csv"
     assert main(["collect", "--config", str(TABLE1), "-n", "30", "-o", str(log), "--quiet"]) == 0
     capsys.readouterr()
-    rc = main(["train", str(log), "--config", str(TABLE1), "-o", str(tmp_path / "m.npz")])
-    _err_line(capsys, rc, contains=(f"{log}: 30 rows", "subsample"))
+    rc = main(["train", str(log), "--config", str(TABLE1), "--gp", "exact", "-o", str(tmp_path / "m.npz")])
+    _err_line(capsys, rc, contains=(f"{log}: 30 rows", "--gp exact", "subsample"))
+
+
+def test_train_above_the_exact_limit_fits_the_sparse_form(tmp_path, capsys, monkeypatch):
+    """``--gp auto`` (the default) above MAX_TRAIN_ROWS fits the sparse model instead of refusing."""
+    import microctl.models.training as training
+    from microctl.gp.fitted import FittedVHGPR
+
+    monkeypatch.setattr(training, "MAX_TRAIN_ROWS", 20)
+    log = tmp_path / "log.csv"
+    assert main(["collect", "--config", str(TABLE1), "-n", "30", "-o", str(log), "--quiet"]) == 0
+    out = tmp_path / "m.npz"
+    assert main(["train", str(log), "--config", str(TABLE1), "--inducing", "12", "-o", str(out), "--quiet"]) == 0
+    assert "sparse, 12 inducing points" in capsys.readouterr().out
+    model = FittedVHGPR.load(out)
+    assert model.posterior_form == "sparse" and model.X.shape[0] == 12
 
 
 def test_fifos_refused_as_inputs_and_outputs(tmp_path, capsys):

@@ -12,12 +12,15 @@ from microctl.measurement.log import read_log
 from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
+    GP_FORMS,
     MAX_TRAIN_ROWS,
     NOISE_MODELS,
     ResidualModelSettings,
+    max_train_rows,
     noise_summary,
     residual_dataset,
     train_residual_model,
+    uses_sparse,
 )
 from microctl.stage.config import load_stage_config
 from microctl.util.fields import SettingError
@@ -45,6 +48,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="no affine trend in u in the mean correction (the paper's SE kernel alone)")
     p.add_argument("--se", choices=("auto", "on", "off"), default=d.se,
                    help=f"the mean correction's SE part (default {d.se}: kept only where the data pay for it)")
+    p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
+                   help=f"the GP's form (default {d.gp}: exact up to {MAX_TRAIN_ROWS} rows, sparse above)")
+    p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
+                   help=f"inducing points of the sparse form (default {d.inducing})")
     p.add_argument("--restarts", type=int, default=d.restarts, metavar="N",
                    help=f"optimisation runs (default {d.restarts})")
     add_seed(p, f"seed of the restarts (default {d.seed})")
@@ -58,7 +65,8 @@ def _run(args: argparse.Namespace) -> int:
                           "would be a constant): drop --no-linear-trend, or use --se auto or on")
     try:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
-                                         restarts=args.restarts, seed=args.seed)
+                                         restarts=args.restarts, seed=args.seed, gp=args.gp,
+                                         inducing=args.inducing)
     except SettingError as exc:  # name the option, not the field
         raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
@@ -66,23 +74,28 @@ def _run(args: argparse.Namespace) -> int:
     afm = AnalyticForwardModel(config.stage)
     log = read_log(args.log, config.stage, min_rows=MIN_ROWS)
     check_reading_scale(log, afm)  # readings in mm, not µm, would train a model of nothing
-    if len(log) > MAX_TRAIN_ROWS:
-        raise DataError(f"{args.log}: {len(log)} rows; a residual model is trained on at most {MAX_TRAIN_ROWS} "
-                        "(its cost grows as rows³); train on a subsample of the log")
+    if len(log) > max_train_rows(settings):
+        hint = ("(the exact GP's cost grows as rows³); use --gp auto or sparse, or train on a subsample of the log"
+                if settings.gp == "exact" else "(the sparse GP's memory grows with rows); train on a subsample")
+        raise DataError(f"{args.log}: {len(log)} rows; a residual model with --gp {settings.gp} is trained on at most "
+                        f"{max_train_rows(settings)} {hint}")
     data = residual_dataset(log, afm)
     note = afm.dynamic_corrections_note()
     if note:
         print(f"train: note: {note}", file=sys.stderr)
     t0 = time.perf_counter()
     if not args.quiet and sys.stderr.isatty():
-        print(f"train: fitting the VHGPR to {len(data.y)} residuals ({args.restarts} run(s))...", file=sys.stderr)
+        form = (f"sparse, {settings.inducing} inducing points" if uses_sparse(len(data.y), settings) else "exact")
+        print(f"train: fitting the VHGPR ({form}) to {len(data.y)} residuals ({args.restarts} run(s))...",
+              file=sys.stderr)
     try:
         model = train_residual_model(data, afm, settings)
     except DataError as exc:  # e.g. "y is constant": say which file
         raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
     model.save(args.out)
     # the result on stdout (progress and notes go to stderr): shown also with --quiet
-    print(f"train: {len(data.y)} rows, MV bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
+    form = "" if model.posterior_form == "exact" else f" (sparse, {model.X.shape[0]} inducing points)"
+    print(f"train: {len(data.y)} rows{form}, bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
           f"model for stage '{config.stage.name}' written to {args.out}")
     print(f"train: {describe_noise(noise_summary(model, afm))}")
     sel = model.info.get("se_selection")
