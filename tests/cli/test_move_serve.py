@@ -361,3 +361,35 @@ def test_move_learn_refits_into_versioned_model_files(trained, tmp_path, capsys)
     again = api.train(rows, stage, restarts=entries[1]["restarts"], seed=entries[1]["seed"])
     np.testing.assert_allclose(again.predict(again.X[:5]).f_mean, FittedVHGPR.load(v2).predict(again.X[:5]).f_mean,
                                rtol=1e-9)
+
+
+def test_learner_update_folds_each_move_into_the_model(trained, tmp_path):
+    """Learner(update=True): between refits every move is added to the controller's model at once
+    (microctl.gp.sparse.update), and the model's mean moves toward the residuals it was shown."""
+    stage, train_log, model0 = trained
+    log = tmp_path / "u.csv"
+    log.write_bytes(train_log.read_bytes())
+    ctl = api.Controller(stage, model0)
+    before = ctl.eafm.model
+    with api.Operator(ctl, stage.open_backend(), log=log) as op:
+        learner = api.Learner(op, model0, every=1000, update=True)
+        records = []
+        for t in (4.0, 9.0, 14.0, 19.0, 24.0):
+            records.append(op.move(t))
+            assert learner.after_move(records[-1]) is None
+    after = ctl.eafm.model
+    assert after is not before and after.posterior_form == "sparse"
+    assert after.info["sparse"]["updates"] == 5
+    X = np.array([np.concatenate([r.state_before, r.u]) for r in records])
+    y = np.array([r.measured_um for r in records]) - stage.afm.t_of(np.array([r.u for r in records]))
+    # the updated mean is nearer the residuals it was given than the model that had not seen them
+    assert np.mean(np.abs(y - after.predict(X).f_mean)) < np.mean(np.abs(y - before.predict(X).f_mean))
+    assert len(read_log(log, stage.config.stage)) == 45
+
+
+def test_update_needs_learn(trained, tmp_path, capsys):
+    stage, train_log, model0 = trained
+    rc = main(["move", "--config", str(CONFIG), "--model", str(model0), "--target", "5", "--update",
+               "--log", str(tmp_path / "never.csv")])
+    assert rc == 2 and "--update needs --learn" in capsys.readouterr().err
+    assert not (tmp_path / "never.csv").exists()

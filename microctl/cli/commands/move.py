@@ -36,6 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="fold the moves into the model: every --refit-every moves, refit on the whole log and "
                    "continue with the new model, written as a new version MODEL.vK.npz beside --model (recorded "
                    "in MODEL.versions.jsonl with the log rows it was trained on)")
+    p.add_argument("--update", action="store_true",
+                   help="with --learn: also fold each move into the model at once, without a refit (in memory, "
+                   "hyperparameters fixed; the next refit supersedes it)")
     p.add_argument("--refit-every", type=int_at_least(1, "at least 1"), default=50, metavar="N",
                    help="moves between refits with --learn (default 50)")
     p.add_argument("--json", action="store_true", help="print one JSON object per move on stdout (JSON lines)")
@@ -74,13 +77,16 @@ def _run(args: argparse.Namespace) -> int:
     from microctl.errors import UnreachableTargetError
     from microctl.util.io import to_jsonable
 
+    if args.update and not args.learn:
+        raise ConfigError("--update needs --learn (it folds the moves into the model the learner keeps)")
     targets = parse_targets(args.targets) if args.targets is not None else [args.target]
     if args.target is not None and not math.isfinite(args.target):
         raise ConfigError(f"--target {args.target!r} is not a finite number")
     stage = api.load_stage(args.config)
     ctl = api.Controller(stage, args.model, controller_settings(args))
     with api.Operator(ctl, stage.open_backend(), log=args.log) as op:
-        learner = api.Learner(op, args.model, every=args.refit_every) if args.learn else None
+        learner = (api.Learner(op, args.model, every=args.refit_every, update=args.update)
+                   if args.learn else None)
         for note in op.backend.notes:
             if not args.quiet:
                 print(f"move: {note}", file=sys.stderr)
@@ -101,7 +107,7 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"{rec.seq:>5} {rec.target_um:>10.4f} {rec.predicted_um:>13.4f} {rec.predicted_std_um:>9.4f} "
                       f"{rec.measured_um:>12.4f} {rec.error_um:>9.4f}")
             sys.stdout.flush()
-            new = learner.after_move() if learner is not None else None
+            new = learner.after_move(rec) if learner is not None else None
             if new is not None and not args.quiet:
                 print(f"move: refit on the log's {ctl.n_train} moves; continuing with {new}", file=sys.stderr)
         if not args.quiet:
