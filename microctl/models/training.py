@@ -262,7 +262,15 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     The selection (names, log-likelihood gains and the gains they needed) is in
     ``info["noise_selection"]``.
     """
-    first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
+    if uses_sparse(len(data.y), st):
+        # the first fit only gives f for the residuals: an exact fit on the sparse model's
+        # subset size does (the selection still reads all n residuals)
+        rng = np.random.default_rng(st.seed)
+        idx = np.sort(rng.choice(len(data.y), size=min(len(data.y), SPARSE_SUBSET), replace=False))
+        sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
+        first = _fit(sub, afm, replace(st, gp="exact"), noise_features_for(afm), "physical", max_time)
+    else:
+        first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
     r = data.y - first.predict(data.X).f_mean
     cands = candidate_features(afm).rescaled(data.X)
     U = data.X[:, afm.n_s:]
