@@ -142,6 +142,11 @@ class SparseVHGPR:
         t0 = time.perf_counter()
         X, y = validate_training(X, y)
         n, d = X.shape
+        if inducing is not None:  # checked before any work
+            inducing = as_float_array(inducing, "inducing")
+            if inducing.ndim != 2 or inducing.shape[1] != d or inducing.shape[0] < 1:
+                raise DataError(f"inducing has shape {inducing.shape}; expected (M, {d}) with M >= 1")
+            check_finite(inducing, "inducing")
         rng = np.random.default_rng(self.random_state)
         idx = np.sort(rng.choice(n, size=self.subset, replace=False)) if n > self.subset else np.arange(n)
         base = self.hyper.fit(X[idx], y[idx])
@@ -151,11 +156,7 @@ class SparseVHGPR:
         if inducing is None:
             Z = _inducing_points(Xs, self.n_inducing, rng)
         else:
-            Z = as_float_array(inducing, "inducing")
-            if Z.ndim != 2 or Z.shape[1] != d or Z.shape[0] < 1:
-                raise DataError(f"inducing has shape {Z.shape}; expected (M, {d}) with M >= 1")
-            check_finite(Z, "inducing")
-            Z = (Z - base.x_mean) / base.x_scale
+            Z = (inducing - base.x_mean) / base.x_scale
         with single_thread_blas():  # see microctl.util.blas: threads that spin cost more than they give
             state = _Problem(Z, base.f_kernel, base.g_kernel, base.g_prior_mean, Xs, ys)
             bound, iters, converged = state.solve(tol=self.tol, max_iter=self.max_iter)

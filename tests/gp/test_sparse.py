@@ -201,6 +201,8 @@ def test_bad_settings_and_inputs_are_refused(small):
     with pytest.raises(ConfigError, match="tol"):
         SparseVHGPR(tol=0)
     X, y, exact = small
+    with pytest.raises(DataError, match="inducing has shape"):
+        SparseVHGPR().fit(X, y, inducing=np.zeros((4, 3)))
     with pytest.raises(DataError, match="X_new has shape"):
         update(exact, np.zeros((3, 5)), np.zeros(3))
     with pytest.raises(DataError, match="y_new has shape"):
