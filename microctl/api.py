@@ -13,20 +13,21 @@ target, move a stage (simulated or hardware) and read the results::
         rec = op.move(14.0)                     # MoveRecord: predicted ± std and the measured pose
 
 The command line (``microctl solve``, ``move``, ``serve``) is a thin layer over these names;
-``docs/api.md`` has examples that run as tests. Units: µm for displacements, mrad for
-rotations. Errors are :mod:`microctl.errors`' classes: :class:`~microctl.errors.ConfigError`
-and :class:`~microctl.errors.DataError` for bad input,
-:class:`~microctl.errors.UnreachableTargetError` for a target outside what the stage reaches,
-:class:`~microctl.errors.BackendError` from a device, :class:`~microctl.errors.SolveError`.
+``docs/api.md`` has examples that run as tests. Units: µm, mrad. Errors (:mod:`microctl.errors`):
+``ConfigError``/``DataError`` for bad input, ``UnreachableTargetError`` for a target outside the
+stage's reach, ``BackendError`` from a device, ``SolveError``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import math
 import re
 import signal
 import threading
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
@@ -541,9 +542,8 @@ class Learner:
         Of each refit.
     update : bool
         Also fold every move into the controller's model as soon as it is made, without a refit
-        (:func:`microctl.gp.sparse.update`: the model's posterior is the prior of the new move,
-        hyperparameters fixed; ~0.1 s at 256 inducing points). The updated model lives in memory
-        only: the log holds the move, and the next refit (a file) supersedes it.
+        (:func:`microctl.gp.sparse.update`, hyperparameters fixed). In memory only: the log holds
+        the move, and the next refit (a file) supersedes it.
     """
 
     def __init__(self, operator: Operator, model: str | Path, every: int = 50, restarts: int = 1, seed: int = 0,
@@ -553,8 +553,7 @@ class Learner:
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ConfigError(f"every: expected a number of moves >= 1, got {every!r}")
         self.operator, self.model, self.every = operator, Path(model), every
-        self.restarts, self.seed, self._since = restarts, seed, 0
-        self.update = bool(update)
+        self.restarts, self.seed, self._since, self.update = restarts, seed, 0, bool(update)
         self.manifest = self.model.with_name(f"{self.model.stem}.versions.jsonl")
 
     def next_version(self) -> int:
@@ -564,29 +563,21 @@ class Learner:
         return max(found, default=0) + 1
 
     def after_move(self, record: MoveRecord | None = None) -> Path | None:
-        """Count a move; refit when ``every`` have been made since the last (the new file, else None).
-
-        With ``update`` and the move's ``record``, a move that does not trigger a refit is folded
-        into the controller's model at once (eq. 3: x = [s; u], y = t' - AFM t(u)).
-        """
+        """Count a move; refit after ``every`` (the new file), else fold ``record`` in if ``update`` (eq. 3)."""
         self._since += 1
         if self._since >= self.every:
             return self.refit()
         if self.update and record is not None:
             from microctl.gp.sparse import update
 
-            ctl = self.operator.controller
-            afm = self.operator.stage.afm
-            x = np.concatenate([np.asarray(record.state_before, dtype=float), np.asarray(record.u, dtype=float)])
-            y = record.measured_um - float(np.asarray(afm.t_of(np.asarray(record.u, dtype=float)[None, :])).ravel()[0])
+            ctl, u = self.operator.controller, np.asarray(record.u, dtype=float)
+            x = np.concatenate([np.asarray(record.state_before, dtype=float), u])
+            y = record.measured_um - float(np.ravel(self.operator.stage.afm.t_of(u[None, :]))[0])
             ctl.reload(update(ctl.eafm.model, x[None, :], [y]))
         return None
 
     def refit(self) -> Path:
         """Train on the log as it is now, write the next version, switch the controller to it."""
-        import hashlib
-        import json
-        import time
 
         path = self.operator.log_path
         raw = path.read_bytes()

@@ -373,7 +373,7 @@ def test_emulate_refuses_one_port_for_several_devices(capsys):
     ("incremental", {"targets_um": [7, 14], "trials": 1000000000}, "incremental: targets × trials"),
     ("oracle", {"grid": 1000000}, "oracle.grid: must be an integer in [5, 201]"),
     ("training", {"moves": 125, "refine_rounds": 100}, "training.refine_rounds"),
-    ("training", {"moves": 100000}, "training rows"),
+    ("training", {"moves": 100001}, "training rows"),
 ])
 def test_experiment_sizes_bounded_at_load(tmp_path, capsys, section, value, needle):
     import yaml
