@@ -149,6 +149,23 @@ def _on_sigint(signum, frame) -> None:  # noqa: ARG001 - signal handler API
     raise KeyboardInterrupt
 
 
+def _on_unraisable(unraisable) -> None:
+    """A Ctrl-C that landed in a callback Python cannot raise from (a weakref's or a finaliser
+    during garbage collection) is delivered again, so the command stops in its own code, instead
+    of being printed as "Exception ignored" and lost."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        import signal
+        import threading
+
+        # to the main thread (a blocking call there, a sleep or a serial read, is interrupted too),
+        # a moment later: a signal handled before this hook returns would land in it and be lost
+        timer = threading.Timer(0.05, signal.pthread_kill, args=(threading.main_thread().ident, signal.SIGINT))
+        timer.daemon = True
+        timer.start()
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
     import signal
@@ -158,6 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         previous = signal.signal(signal.SIGINT, _on_sigint)
     except ValueError:  # not the main thread (e.g. a test runner's worker)
         previous = None
+    hook, sys.unraisablehook = sys.unraisablehook, (_on_unraisable if previous is not None else sys.unraisablehook)
     try:
         rc = _main(argv)
     except KeyboardInterrupt:  # in a command, or while the command modules are still being imported
@@ -167,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         rc = 130  # the interrupt surfaced as another exception (an import failing half-way)
     finally:
+        sys.unraisablehook = hook
         if argv is None:  # the process's entry point: a Ctrl-C now, after the work, must not end it by the signal
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         elif previous is not None:

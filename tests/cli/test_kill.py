@@ -152,3 +152,28 @@ def test_kill_leaves_old_or_new_file(work, name):
                     check(path)
                 except Exception as exc:  # noqa: BLE001 - the test reports what was torn
                     pytest.fail(f"{what}: {rel} is torn: {exc}")
+
+
+def test_ctrl_c_swallowed_by_a_finaliser_is_delivered_again():
+    """A Ctrl-C that lands in a finaliser or weakref callback (garbage collection) cannot be raised
+    there; CPython prints "Exception ignored" and goes on. The CLI delivers it again, so the command
+    still stops (here: within a 20 s sleep) with 130 and one clean line, no traceback."""
+    script = (
+        "import sys, time\n"
+        "from microctl import cli\n"
+        "class Finaliser:\n"
+        "    def __del__(self):\n"
+        "        raise KeyboardInterrupt\n"
+        "def command(argv):\n"
+        "    Finaliser()\n"
+        "    time.sleep(20)\n"
+        "    return 0\n"
+        "cli._main = command\n"
+        "sys.exit(cli.main(['stage']))\n"
+    )
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert time.monotonic() - t0 < 15, "the re-delivered Ctrl-C did not stop the command"
+    assert "Exception ignored" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "microctl: interrupted"
