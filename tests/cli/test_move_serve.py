@@ -332,6 +332,55 @@ def test_serve_process_survives_malformed_input(trained, tmp_path):
     assert len(read_log(tmp_path / "s.csv", stage.config.stage)) == 1
 
 
+def test_serve_tcp_answers_clients_in_turn_and_survives_a_dropped_one(trained, tmp_path):
+    """serve --tcp 0: loopback only, the port on stderr; a client's requests answered in order, a
+    client that drops mid-line costs only its connection, the next client is served; Ctrl-C ends
+    it with 130 and the log holds every move made."""
+    import socket
+
+    stage, _, model = trained
+    log = tmp_path / "tcp.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "microctl", "serve", "--config", str(CONFIG), "--model", str(model),
+                             "--log", str(log), "--tcp", "0", "--max-request-bytes", "1024"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        port = None
+        for _ in range(50):
+            line = proc.stderr.readline()
+            if m := re.match(r"serve: listening on 127\.0\.0\.1:(\d+)", line):
+                port = int(m.group(1))
+                break
+        assert port, "no listening line"
+
+        def ask(lines: list[bytes]) -> list[dict]:
+            with socket.create_connection(("127.0.0.1", port), timeout=60) as c:
+                c.sendall(b"".join(lines))
+                c.shutdown(socket.SHUT_WR)
+                data = b"".join(iter(lambda: c.recv(65536), b""))
+            return [json.loads(x) for x in data.decode("ascii").splitlines()]
+
+        first = ask([b'{"op": "solve", "target_um": 9, "id": 1}\n', b"not json\n", b"x" * 2000 + b"\n",
+                     b'{"op": "move", "target_um": 6, "id": 2}\n'])
+        assert [r["ok"] for r in first] == [True, False, False, True]
+        assert [r["id"] for r in first] == [1, None, None, 2]
+        assert first[1]["error"]["code"] == "bad_json" and first[2]["error"]["code"] == "too_large"
+        with socket.create_connection(("127.0.0.1", port), timeout=60) as c:  # drops mid-request
+            c.sendall(b'{"op": "move", "targ')
+        second = ask([b'{"op": "state"}\n'])
+        assert second[0]["ok"] and second[0]["result"]["moves"] == 1
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert len(read_log(log, stage.config.stage)) == 1
+
+
+def test_serve_tcp_port_out_of_range_is_refused(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["serve", "--config", str(CONFIG), "--model", "m.npz", "--tcp", "70000"])
+    assert exc.value.code == 2 and "--tcp" in capsys.readouterr().err
+
+
 def test_move_learn_refits_into_versioned_model_files(trained, tmp_path, capsys):
     """--learn --refit-every 3: after moves 3 and 6 a refit on the whole log, each a new version whose
     manifest line names the rows it was trained on; retraining those rows reproduces it."""

@@ -1,6 +1,7 @@
 """``microctl serve``: the controller as a long-running process speaking JSON lines on stdin/stdout.
 
-One request per line, one response per line, in order (protocol: docs/cli.md, "serve"). A bad
+One request per line, one response per line, in order (protocol: docs/cli.md, "serve"); with
+``--tcp PORT`` the same protocol on a loopback TCP socket, one client at a time. A bad
 request gets an error object, never a crash; a line longer than ``--max-request-bytes`` is
 refused without being parsed (and the rest of it skipped). A thin layer over :mod:`microctl.api`.
 """
@@ -44,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="measurement log executed moves are appended to; without it, move requests are refused")
     p.add_argument("--r-e", default=None, metavar="R", help="noise summary r_e of eq. 4 (default: as `solve`)")
     p.add_argument("--kappa", type=float, default=None, help="standard normal quantile of noise_quantile")
+    p.add_argument("--tcp", type=int_at_least(0, "a port number in [0, 65535]", 65535), default=None, metavar="PORT",
+                   help="serve on 127.0.0.1:PORT instead of stdin/stdout, one client at a time, until Ctrl-C "
+                        "(0: a free port, printed on stderr)")
     p.add_argument("--max-request-bytes", type=int_at_least(64, "at least 64"), default=MAX_REQUEST_BYTES,
                    metavar="N", help=f"longest request line accepted (default {MAX_REQUEST_BYTES})")
     add_quiet(p)
@@ -234,7 +238,43 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"serve: {note}", file=sys.stderr)
             print(f"serve: ready (stage '{stage.name}', {stage.config.backend.kind} backend, model {args.model}, "
                   f"{'moves logged to ' + args.log if args.log else 'moves refused: no --log'})", file=sys.stderr)
-        n = serve_lines(Service(ctl, op, args.log is not None), sys.stdin.buffer, sys.stdout, args.max_request_bytes)
+        service = Service(ctl, op, args.log is not None)
+        if args.tcp is not None:
+            return serve_tcp(service, args.tcp, args.max_request_bytes, args.quiet)
+        n = serve_lines(service, sys.stdin.buffer, sys.stdout, args.max_request_bytes)
         if not args.quiet:
             print(f"serve: end of input after {n} request(s), {op.moves} move(s)", file=sys.stderr)
     return 0
+
+
+def serve_tcp(service: Service, port: int, max_bytes: int, quiet: bool = False) -> int:
+    """Serve JSON lines on 127.0.0.1:``port`` (loopback only), one client at a time, until Ctrl-C.
+
+    Each connection is answered as stdin is (:func:`serve_lines`) until the client closes it;
+    then the next client is accepted. A client that drops mid-request costs only its connection.
+    The ``listening on`` line on stderr names the port (also with ``--quiet``: a client needs it).
+    """
+    import socket
+
+    from microctl.errors import ConfigError
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as srv:
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            srv.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise ConfigError(f"--tcp {port}: cannot listen on 127.0.0.1:{port} ({exc.strerror}); "
+                              "choose a free port, or 0 for any") from None
+        srv.listen(1)
+        print(f"serve: listening on 127.0.0.1:{srv.getsockname()[1]}", file=sys.stderr, flush=True)
+        while True:
+            conn, peer = srv.accept()
+            with conn, conn.makefile("rb") as inp, conn.makefile("w", encoding="ascii", newline="\n") as out:
+                try:
+                    n = serve_lines(service, inp, out, max_bytes)
+                except OSError as exc:  # the client went away mid-answer
+                    n = None
+                    if not quiet:
+                        print(f"serve: client {peer[0]}:{peer[1]} dropped ({exc.strerror or exc})", file=sys.stderr)
+            if not quiet and n is not None:
+                print(f"serve: client {peer[0]}:{peer[1]} closed after {n} request(s)", file=sys.stderr, flush=True)
