@@ -10,7 +10,8 @@ built on, so it is left out unless named):
 2. operate the rig for ``--moves`` moves with the public API exactly as ``microctl move
    --learn`` does (:class:`microctl.api.Operator` and :class:`microctl.api.Learner`): targets
    drawn uniformly in [3, 27] µm (seeded), every executed move appended to the log, a refit on
-   the whole log every ``--refit-every`` moves (versioned model files);
+   the whole log every ``--refit-every`` moves (versioned model files); with ``--update`` also
+   each move between refits folded into the model at once, as ``move --learn --update`` does;
 3. score the frozen model and the last refit the way ``scripts/bench_rigs.py`` scores its
    methods: targets 6, 12, 18, 24 µm in sequence on a fresh copy of the rig, each pose's true
    mean error and true std against the oracle's (the fine search, checked against random
@@ -18,7 +19,7 @@ built on, so it is left out unless named):
    |true error| <= 0.1 µm.
 
 Usage: ``python scripts/bench_learn.py [--family stroke_patch,light_ball,...] [--rigs 3]
-[--start 125] [--moves 1000] [--refit-every 250] [--restarts 1] [--jobs 2] [--json FILE]
+[--start 125] [--moves 1000] [--refit-every 250] [--update] [--restarts 1] [--jobs 2] [--json FILE]
 [--markdown FILE]``. Rig k of a family uses seed k (the bench's seeds).
 """
 
@@ -78,7 +79,7 @@ def passes(rows: list[dict]) -> bool:
                for t in rows)
 
 
-def run_rig(family: str, seed: int, start: int, moves: int, every: int, restarts: int) -> dict:
+def run_rig(family: str, seed: int, start: int, moves: int, every: int, restarts: int, update: bool = False) -> dict:
     """Collect, train, operate with learning, score frozen and learned (module docstring)."""
     rig = rig_families.make_family_rig(family, seed)
     stage = api.Stage(rig.config, AnalyticForwardModel(rig.config.stage))
@@ -92,11 +93,11 @@ def run_rig(family: str, seed: int, start: int, moves: int, every: int, restarts
         targets = np.random.default_rng(seed + 30_000).uniform(*OPERATE_RANGE_UM, size=moves)
         errors, refits = [], []
         with rig.stage(seed + 40_000) as sim, api.Operator(api.Controller(stage, frozen_path), sim, log=log) as op:
-            learner = api.Learner(op, frozen_path, every=every, restarts=restarts, seed=0)
+            learner = api.Learner(op, frozen_path, every=every, restarts=restarts, seed=0, update=update)
             for t in targets:
                 rec = op.move(float(t))
                 errors.append(rec.error_um)
-                if learner.after_move() is not None:
+                if learner.after_move(rec) is not None:
                     refits.append(len(errors))
         learned = op.controller.eafm.model
         t_operate = time.perf_counter() - t0 - t_train
@@ -172,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--start", type=int, default=125, help="moves the frozen model is trained on")
     ap.add_argument("--moves", type=int, default=1000, help="operating moves")
     ap.add_argument("--refit-every", type=int, default=250)
+    ap.add_argument("--update", action="store_true", help="fold each move between refits into the model (move --learn --update)")
     ap.add_argument("--restarts", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--json", metavar="FILE")
@@ -185,13 +187,15 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--rigs, --start, --moves, --refit-every, --restarts and --jobs must be >= 1")
     header = (f"machine: {platform.machine()} {os.cpu_count()} cpu, Python {platform.python_version()}, numpy "
               f"{np.__version__}; families {list(fams)}, {args.rigs} rigs each, start {args.start} moves, "
-              f"{args.moves} operating moves, refit every {args.refit_every} (restarts {args.restarts}), jobs {args.jobs}")
+              f"{args.moves} operating moves, refit every {args.refit_every} (restarts {args.restarts}), "
+              f"per-move update {'on' if args.update else 'off'}, jobs {args.jobs}")
     print(header)
     t0 = time.perf_counter()
     jobs = [(f, s) for f in fams for s in range(args.rigs)]
     results = []
     with ProcessPoolExecutor(args.jobs) as ex:
-        futs = [ex.submit(run_rig, f, s, args.start, args.moves, args.refit_every, args.restarts) for f, s in jobs]
+        futs = [ex.submit(run_rig, f, s, args.start, args.moves, args.refit_every, args.restarts,
+                          args.update) for f, s in jobs]
         for fu in futs:
             r = fu.result()
             results.append(r)
