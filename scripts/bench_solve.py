@@ -14,7 +14,8 @@ state):
   start, objective/constraint gradients from the same CasADi graphs;
 - ``dense-grid``: a 101 x 101 grid over the redundant set, Newton-projected (no polish).
 
-Reported per method: solve CPU time of this process (``time.process_time``: median, min, max),
+Reported per method: solve CPU time of this process (``time.process_time``: median, min, max;
+the BLAS limited to one thread for all methods alike),
 IPOPT/SQP/scipy iterations, success rate (converged, constraint residual <= 1e-8 µm, actuators in
 range) and the share of targets on which the method reaches the best objective found by any
 method (relative 1e-5).
@@ -48,6 +49,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 from scipy.optimize import Bounds, LinearConstraint, NonlinearConstraint, minimize
+from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -400,9 +402,12 @@ def main(argv=None):
           f"cpus={os.cpu_count()}, python {platform.python_version()}, casadi {ca.__version__}")
     print(f"targets per size: {args.targets}, seed {args.seed}, model: {args.fit}, r_e: {args.r_e}, "
           f"reach = objective within {REACH_REL:g} (relative) of the best of all methods")
+    print("BLAS: one thread for every method (threadpoolctl), as microctl runs its own numerics: a pool's "
+          "idle workers spin, and process_time charges that to whichever call is timed next")
     all_rows = []
     for n in sizes:
-        rows, fit_s, build_s = bench_size(afm, n, args)
+        with threadpool_limits(limits=1, user_api="blas"):
+            rows, fit_s, build_s = bench_size(afm, n, args)
         print(f"n={n}: model {fit_s:.1f} s, controller build {build_s * 1e3:.0f} ms")
         all_rows += rows
     print()
