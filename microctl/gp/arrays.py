@@ -6,6 +6,7 @@ the offending row.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from typing import Any
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from microctl.errors import DataError
 
-__all__ = ["as_float_array", "check_finite", "validate_training", "freeze", "jsonable"]
+__all__ = ["as_float_array", "check_finite", "validate_training", "training_hash", "freeze", "jsonable"]
 
 
 def as_float_array(a: Any, name: str) -> np.ndarray:
@@ -71,6 +72,13 @@ def validate_training(X: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
     if not float(np.std(y)) > 1e-12 * max(1.0, float(np.max(np.abs(y)))):
         raise DataError(f"y is constant (every value is {y[0]:g}); there is nothing to regress")
     return np.array(X, dtype=np.float64), np.array(y, dtype=np.float64)
+
+
+def training_hash(X: np.ndarray, y: np.ndarray) -> str:
+    """SHA-256 of the training data's float64 bytes (X then y): which data a model was fitted on."""
+    return hashlib.sha256(
+        np.ascontiguousarray(X, dtype=np.float64).tobytes() + np.ascontiguousarray(y, dtype=np.float64).tobytes()
+    ).hexdigest()
 
 
 def freeze(a: np.ndarray) -> None:

@@ -233,14 +233,15 @@ class FittedVHGPR:
         """The posterior of f and g (:class:`~microctl.gp.posterior.Posterior`), built once."""
         return Posterior(self)
 
-    def _check_X(self, X: Any) -> np.ndarray:
-        X = as_float_array(X, "X")
+    def check_inputs(self, X: Any, name: str = "X") -> np.ndarray:
+        """``X`` as a float array of shape (m, d) with this model's d, finite; DataError naming ``name``."""
+        X = as_float_array(X, name)
         d = self.n_inputs
         if X.ndim == 1 and d == 1:
             X = X[:, None]
         if X.ndim != 2 or X.shape[1] != d:
-            raise DataError(f"X has shape {X.shape}; this model expects shape (m, {d})")
-        check_finite(X, "X")
+            raise DataError(f"{name} has shape {X.shape}; this model expects shape (m, {d})")
+        check_finite(X, name)
         return X
 
     def predict(self, X: Any) -> VHGPRPrediction:
@@ -255,7 +256,7 @@ class FittedVHGPR:
         VHGPRPrediction
             All fields of shape (m,), in original units of y.
         """
-        X = self._check_X(X)
+        X = self.check_inputs(X)
         xs = (X - self.x_mean) / self.x_scale
         a, c2, mu, s2 = self.posterior.predict_std(xs)
         np.maximum(c2, 0.0, out=c2)
@@ -276,7 +277,7 @@ class FittedVHGPR:
         X : array_like, shape (m, d)
         y : array_like, shape (m,)
         """
-        X = self._check_X(X)
+        X = self.check_inputs(X)
         y = as_float_array(y, "y")
         if y.ndim != 1 or y.shape[0] != X.shape[0]:
             raise DataError(f"y has shape {y.shape}; expected ({X.shape[0]},) to match X")

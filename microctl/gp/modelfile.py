@@ -368,10 +368,10 @@ def _check_belong_together(kw: dict, model: Any, fail: Any) -> np.ndarray:
     factors of K(Z, Z) + R with R a full pseudo-noise covariance: there, R must be symmetric
     positive semi-definite (checked on every eigenvalue) instead.
     """
-    X = kw["X"]
-    n, d = X.shape
     if kw["posterior_form"] == "sparse":
         return _check_sparse_factors(kw, model, fail)
+    X = kw["X"]
+    n, d = X.shape
     col_mean, col_std = X.mean(axis=0), X.std(axis=0)
     for j in range(d):
         const_tol = _STANDARD_TOL * max(1.0, abs(float(kw["x_mean"][j])))

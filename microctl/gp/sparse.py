@@ -56,7 +56,7 @@ import scipy.linalg as sla
 from scipy.cluster.vq import kmeans2
 
 from microctl.errors import ConfigError, DataError
-from microctl.gp.arrays import as_float_array, check_finite, freeze, validate_training
+from microctl.gp.arrays import as_float_array, check_finite, freeze, training_hash, validate_training
 from microctl.gp.fitted import FittedVHGPR
 from microctl.gp.kernels import Kernel
 from microctl.gp.linalg import LOG_2PI, chol
@@ -64,7 +64,7 @@ from microctl.gp.noise_prior import LogVarianceMean
 from microctl.gp.trainer import VHGPR
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["SparseVHGPR", "update", "whitened_posterior"]
+__all__ = ["SparseVHGPR", "subset_rows", "update", "whitened_posterior"]
 
 #: Eigenvalues of the data's whitened precision A below this are taken as "no information"
 #: (the pseudo-noise of (S5) is 1/_EIG_FLOOR times the prior there: variance reduction < 1e-9).
@@ -148,7 +148,7 @@ class SparseVHGPR:
                 raise DataError(f"inducing has shape {inducing.shape}; expected (M, {d}) with M >= 1")
             check_finite(inducing, "inducing")
         rng = np.random.default_rng(self.random_state)
-        idx = np.sort(rng.choice(n, size=self.subset, replace=False)) if n > self.subset else np.arange(n)
+        idx = subset_rows(rng, n, self.subset)
         base = self.hyper.fit(X[idx], y[idx])
         t_hyper = time.perf_counter() - t0
         Xs = (X - base.x_mean) / base.x_scale
@@ -160,13 +160,16 @@ class SparseVHGPR:
         with single_thread_blas():  # see microctl.util.blas: threads that spin cost more than they give
             state = _Problem(Z, base.f_kernel, base.g_kernel, base.g_prior_mean, Xs, ys)
             bound, iters, converged = state.solve(tol=self.tol, max_iter=self.max_iter)
-        training_hash = hashlib.sha256(np.ascontiguousarray(X).tobytes() + np.ascontiguousarray(y).tobytes()).hexdigest()
-        info = dict(base.info)
-        info["sparse"] = {"n": int(n), "n_inducing": int(Z.shape[0]), "subset": int(idx.size),
-                          "iterations": int(iters), "converged": bool(converged), "bound": float(bound),
-                          "hyper_seconds": round(t_hyper, 3), "seconds": round(time.perf_counter() - t0, 3)}
-        with single_thread_blas():
-            return state.fitted(base, bound=bound, training_hash=training_hash, info=info)
+            info = dict(base.info)
+            info["sparse"] = {"n": int(n), "n_inducing": int(Z.shape[0]), "subset": int(idx.size),
+                              "iterations": int(iters), "converged": bool(converged), "bound": float(bound),
+                              "hyper_seconds": round(t_hyper, 3), "seconds": round(time.perf_counter() - t0, 3)}
+            return state.fitted(base, bound=bound, training_hash=training_hash(X, y), info=info)
+
+
+def subset_rows(rng: np.random.Generator, n: int, size: int) -> np.ndarray:
+    """Sorted indices of ``size`` of n rows drawn without replacement (all n when n <= size), shape (min(n, size),)."""
+    return np.sort(rng.choice(n, size=size, replace=False)) if n > size else np.arange(n)
 
 
 def _inducing_points(Xs: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
@@ -373,27 +376,23 @@ def _update(model: FittedVHGPR, X_new: Any, y_new: Any, *, tol: float, max_iter:
     prob = _Problem(np.asarray(model.X), model.f_kernel, model.g_kernel, model.g_prior_mean, Xs, ys,
                     prior_f=(Pf, hf), prior_g=(Pg, hg))
     bound, iters, converged = prob.solve(tol=tol, max_iter=max_iter)
-    training_hash = hashlib.sha256(model.training_hash.encode() + np.ascontiguousarray(X_new).tobytes()
-                                   + np.ascontiguousarray(y_new).tobytes()).hexdigest()
+    chained = hashlib.sha256(model.training_hash.encode() + np.ascontiguousarray(X_new).tobytes()
+                             + np.ascontiguousarray(y_new).tobytes()).hexdigest()
     info = dict(model.info)
     sp = dict(info.get("sparse") or {"n": None, "n_inducing": int(model.X.shape[0])})
     sp["updates"] = int(sp.get("updates", 0)) + int(X_new.shape[0])
     sp["last_update"] = {"k": int(X_new.shape[0]), "iterations": int(iters), "converged": bool(converged),
                          "seconds": round(time.perf_counter() - t0, 4)}
     info["sparse"] = sp
-    return prob.fitted(model, bound=model.bound, training_hash=training_hash, info=info)
+    return prob.fitted(model, bound=model.bound, training_hash=chained, info=info)
 
 
 def _validate_new(model: FittedVHGPR, X: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
-    X = as_float_array(X, "X_new")
+    X = model.check_inputs(X, "X_new")
+    if X.shape[0] < 1:
+        raise DataError(f"X_new has shape {X.shape}; at least one new point is needed")
     y = as_float_array(y, "y_new")
-    d = model.n_inputs
-    if X.ndim == 1 and d == 1:
-        X = X[:, None]
-    if X.ndim != 2 or X.shape[1] != d or X.shape[0] < 1:
-        raise DataError(f"X_new has shape {X.shape}; this model expects shape (k, {d}) with k >= 1")
     if y.shape != (X.shape[0],):
         raise DataError(f"y_new has shape {y.shape}; expected ({X.shape[0]},) to match X_new")
-    check_finite(X, "X_new")
     check_finite(y, "y_new")
     return X, y

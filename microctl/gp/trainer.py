@@ -9,7 +9,6 @@ Inputs and outputs are standardised (``notes/vhgpr.md``, cited as [N]).
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 from typing import Any
@@ -18,7 +17,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from microctl.errors import ConfigError, DataError, MicroctlError
-from microctl.gp.arrays import freeze, validate_training
+from microctl.gp.arrays import freeze, training_hash, validate_training
 from microctl.gp.bound import BOUNDS, Layout, mean_coef_covariance, mv_bound
 from microctl.gp.fitted import FittedVHGPR
 from microctl.gp.homoscedastic import fit_homoscedastic, init_mean_coef
@@ -61,9 +60,6 @@ def _standardise(X: np.ndarray, y: np.ndarray) -> dict:
 
     A constant input column keeps ``x_scale = 1``.
     """
-    training_hash = hashlib.sha256(
-        np.ascontiguousarray(X, dtype=np.float64).tobytes() + np.ascontiguousarray(y, dtype=np.float64).tobytes()
-    ).hexdigest()
     x_mean = X.mean(axis=0)
     x_scale = X.std(axis=0)
     x_scale[x_scale <= 1e-12 * np.maximum(1.0, np.abs(x_mean))] = 1.0  # constant input column
@@ -71,7 +67,7 @@ def _standardise(X: np.ndarray, y: np.ndarray) -> dict:
     y_scale = float(y.std())
     Xs = (X - x_mean) / x_scale
     ys = (y - y_mean) / y_scale
-    return {"training_hash": training_hash, "x_mean": x_mean, "x_scale": x_scale, "y_mean": y_mean,
+    return {"training_hash": training_hash(X, y), "x_mean": x_mean, "x_scale": x_scale, "y_mean": y_mean,
             "y_scale": y_scale, "Xs": Xs, "ys": ys}
 
 
@@ -357,15 +353,21 @@ class VHGPR:
     def _optimise(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: Layout,
                   rng: np.random.Generator, deadline: float | None, max_iter: int, Phi: np.ndarray | None
                   ) -> tuple[tuple[float, np.ndarray], list[dict]]:
-        """``n_restarts`` L-BFGS-B runs from ``x_init`` (then perturbed); the best (bound, theta) and the runs."""
+        """``n_restarts`` L-BFGS-B runs from ``x_init`` (then perturbed), and with ``g_start="both"`` one
+        from unit lengthscales of g; the best (bound, theta) and the runs."""
         n = layout.n
         lo, hi = (np.array(b) for b in zip(*layout.bounds()))
         x_init = np.clip(x_init, lo, hi)
         runs: list[dict] = []
         best: tuple[float, np.ndarray] | None = None
-        for k in range(self.n_restarts):
+        starts: list[int | str] = [*range(self.n_restarts), *(["g_unit"] if self.g_start == "both" else [])]
+        for k in starts:
             if k == 0:
                 x0 = x_init
+            elif k == "g_unit":  # g_start="both": one more run from unit lengthscales of g
+                x0 = x_init.copy()
+                x0[layout.g_slice.start:layout.g_slice.start + layout.g.d] = 0.0
+                x0 = np.clip(x0, lo, hi)
             else:
                 x0 = x_init.copy()
                 x0[:n] += 0.1 * rng.standard_normal(n)
@@ -376,17 +378,6 @@ class VHGPR:
                 continue
             run = self._run(x0, Xs, ys, layout, deadline, max_iter, Phi)
             run["start"] = k
-            run["se"] = not layout.se_off
-            x_run = run.pop("x", None)
-            runs.append(run)
-            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
-                best = (run["bound"], x_run)
-        if self.g_start == "both" and not (deadline is not None and time.perf_counter() >= deadline and best is not None):
-            x0 = x_init.copy()
-            d = layout.g.d
-            x0[layout.g_slice.start:layout.g_slice.start + d] = 0.0  # unit lengthscales (g_start)
-            run = self._run(np.clip(x0, lo, hi), Xs, ys, layout, deadline, max_iter, Phi)
-            run["start"] = "g_unit"
             run["se"] = not layout.se_off
             x_run = run.pop("x", None)
             runs.append(run)

@@ -263,10 +263,11 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     ``info["noise_selection"]``.
     """
     if uses_sparse(len(data.y), st):
-        # the first fit only gives f for the residuals: an exact fit on the sparse model's
-        # subset size does (the selection still reads all n residuals)
-        rng = np.random.default_rng(st.seed)
-        idx = np.sort(rng.choice(len(data.y), size=min(len(data.y), SPARSE_SUBSET), replace=False))
+        from microctl.gp.sparse import subset_rows
+
+        # the first fit only gives f for the residuals: an exact fit on the rows the sparse model's
+        # hyperparameters are fitted on does (the selection still reads all n residuals)
+        idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
         sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
         first = _fit(sub, afm, replace(st, gp="exact"), noise_features_for(afm), "physical", max_time)
     else:
