@@ -375,6 +375,20 @@ def test_serve_tcp_answers_clients_in_turn_and_survives_a_dropped_one(trained, t
     assert len(read_log(log, stage.config.stage)) == 1
 
 
+def test_serve_tcp_port_in_use_is_refused(service):
+    import socket
+
+    from microctl.cli.commands.serve import serve_tcp
+    from microctl.errors import ConfigError
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match=rf"--tcp {port}: cannot listen on 127\.0\.0\.1:{port} .*choose a free port"):
+            serve_tcp(service, port, 4096, quiet=True)
+
+
 def test_serve_tcp_port_out_of_range_is_refused(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["serve", "--config", str(CONFIG), "--model", "m.npz", "--tcp", "70000"])

@@ -207,3 +207,9 @@ def test_bad_settings_and_inputs_are_refused(small):
         update(exact, np.zeros((3, 5)), np.zeros(3))
     with pytest.raises(DataError, match="y_new has shape"):
         update(exact, np.zeros((3, 2)), np.zeros(4))
+    with pytest.raises(DataError, match=r"X_new has shape \(0, 2\); at least one new point"):
+        update(exact, np.zeros((0, 2)), np.zeros(0))
+    with pytest.raises(DataError, match=r"X_new has a non-finite value \(nan\) at row 0, column 0"):
+        update(exact, np.array([[np.nan, 0.0]]), np.zeros(1))
+    with pytest.raises(ConfigError, match="hyper must be a VHGPR trainer, got str"):
+        SparseVHGPR(hyper="exact")
