@@ -23,10 +23,9 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse as sps
 
 from microctl.gp.kernels import Kernel, se_matrix
+from microctl.gp.linalg import tril_inverse
 from microctl.gp.noise_prior import LogVarianceMean
 
 __all__ = ["G_GP_VAR_NEGLIGIBLE", "Posterior"]
@@ -45,10 +44,14 @@ G_GP_VAR_NEGLIGIBLE = 1e-4
 _SE_FLUSH = 345.0
 
 
-def _tril_inverse_dm(L: np.ndarray) -> ca.DM:
-    """L^-1 of a lower Cholesky factor as a sparse (lower-triangular) DM."""
-    Linv = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
-    return ca.DM(sps.csc_matrix(np.tril(Linv)))
+def _tril_dm(Linv: np.ndarray) -> ca.DM:
+    """A lower-triangular matrix as a sparse DM (its lower triangle's pattern)."""
+    n = Linv.shape[0]
+    rows, cols = np.tril_indices(n)
+    order = np.lexsort((rows, cols))  # column-major, as CasADi stores
+    rows, cols = rows[order], cols[order]
+    sp = ca.Sparsity.triplet(n, n, rows.tolist(), cols.tolist())
+    return ca.DM(sp, Linv[rows, cols])
 
 
 class Posterior:
@@ -81,6 +84,14 @@ class Posterior:
         self.log_y2 = 2.0 * math.log(self.y_scale)
         self._Lf_inv: ca.DM | None = None
         self._Lg_inv: ca.DM | None = None
+        self._inv: dict[str, np.ndarray] = {}
+
+    def chol_inverse(self, which: str) -> np.ndarray:
+        """``L^-1`` of f's (``"f"``) or g's (``"g"``) Cholesky factor, shape (n, n), computed once:
+        the variances' ``||L^-1 k||^2`` as one product, the same in NumPy and in the graphs."""
+        if which not in self._inv:
+            self._inv[which] = tril_inverse(np.asarray(self.f_chol if which == "f" else self.g_chol, dtype=float))
+        return self._inv[which]
 
     def standardise(self, X: np.ndarray) -> np.ndarray:
         """``(X - x_mean) / x_scale``, shape (m, d)."""
@@ -105,7 +116,7 @@ class Posterior:
             Kg = kg.matrix(xs[sl], self.X)
             # [N prediction] a* = k_f*^T (K_f + R)^-1 y,  c*^2 = k_f** - ||f_chol^-1 k_f*||^2
             a[sl] = Kf @ self.f_alpha
-            v = sla.solve_triangular(self.f_chol, Kf.T, lower=True, check_finite=False)
+            v = self.chol_inverse("f") @ Kf.T
             c2[sl] = kf.diag(xs[sl]) - np.einsum("ij,ij->j", v, v)
             # [N prediction] mu* = k_g*^T (Lambda - I/2) 1 + m(x*),  s*^2 = k_g** - ||g_chol^-1 k_g*||^2
             # (+ the prior mean's parameter uncertainty, noise_prior)
@@ -113,7 +124,7 @@ class Posterior:
             if self.g_gp_var_negligible:  # the bound of the interval [0, k**] (G_GP_VAR_NEGLIGIBLE)
                 s2[sl] = kg.diag(xs[sl]) + gm.variance(xs[sl])
             else:
-                v = sla.solve_triangular(self.g_chol, Kg.T, lower=True, check_finite=False)
+                v = self.chol_inverse("g") @ Kg.T
                 s2[sl] = kg.diag(xs[sl]) - np.einsum("ij,ij->j", v, v) + gm.variance(xs[sl])
         return a, c2, mu, s2
 
@@ -139,7 +150,7 @@ class Posterior:
         if self.g_gp_var_negligible:
             return self.g_kernel.diag(xs)
         Kg = self.g_kernel.matrix(xs, self.X) if Kg is None else Kg
-        v = sla.solve_triangular(self.g_chol, Kg.T, lower=True, check_finite=False)
+        v = self.chol_inverse("g") @ Kg.T
         return np.maximum(self.g_kernel.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
 
     def g_mean_var(self, xs: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +173,7 @@ class Posterior:
         mean = self.g_mean(xs, Kg)
         cov = self.g_kernel.matrix(xs, xs) + self.prior_evidence.covariance(xs, xs)
         if not self.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
-            V = sla.solve_triangular(self.g_chol, Kg.T, lower=True, check_finite=False)
+            V = self.chol_inverse("g") @ Kg.T
             cov = cov - V.T @ V
         return mean, cov
 
@@ -215,12 +226,12 @@ class Posterior:
     # ---- CasADi --------------------------------------------------------------------------
     def _lf_inv(self) -> ca.DM:
         if self._Lf_inv is None:
-            self._Lf_inv = _tril_inverse_dm(self.f_chol)
+            self._Lf_inv = _tril_dm(self.chol_inverse("f"))
         return self._Lf_inv
 
     def _lg_inv(self) -> ca.DM:
         if self._Lg_inv is None:
-            self._Lg_inv = _tril_inverse_dm(self.g_chol)
+            self._Lg_inv = _tril_dm(self.chol_inverse("g"))
         return self._Lg_inv
 
     def casadi(self, xs: ca.MX, which: tuple[str, ...]) -> dict[str, ca.MX]:
