@@ -11,7 +11,7 @@ from dataclasses import replace
 import casadi as ca
 import numpy as np
 
-from microctl.control.base import BaseController, unreachable
+from microctl.control.base import BaseController, in_range, unreachable
 from microctl.control.ipopt import ipopt_options
 from microctl.control.redundant import RedundantSet
 from microctl.control.result import Controller, ControlResult, NoiseComparison
@@ -77,10 +77,17 @@ class AFMController(BaseController):
         p = ca.MX.sym("p", 1 + afm.n_q)  # [d; q_prev]
         Ku = ca.mtimes(ca.DM(afm.K), u)
         scale = float(np.mean((afm.hi - afm.lo) ** 2))
-        nlp = {"x": u, "p": p, "f": ca.sumsqr(Ku - p[1:]) / scale,
-               "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
-        self._solver = ca.nlpsol("afm_ipopt", "ipopt", nlp, ipopt_options(self.settings))
-        self.n_builds += 1
+        self._nlp = {"x": u, "p": p, "f": ca.sumsqr(Ku - p[1:]) / scale,
+                     "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
+        self._solver: ca.Function | None = None
+
+    def _ipopt(self) -> ca.Function:
+        """IPOPT on the QP, built at its first use: only a command whose plane minimiser leaves
+        the ranges needs it."""
+        if self._solver is None:
+            self._solver = ca.nlpsol("afm_ipopt", "ipopt", self._nlp, ipopt_options(self.settings))
+            self.n_builds += 1
+        return self._solver
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
               u_init: np.ndarray | None = None) -> ControlResult:
@@ -97,9 +104,13 @@ class AFMController(BaseController):
         n = K.shape[1]
         kkt = np.block([[2 * K.T @ K, w[:, None]], [w[None, :], np.zeros((1, 1))]])
         u0 = np.linalg.solve(kkt, np.concatenate([2 * K.T @ qp, [d]]))[:n]
-        x, st = self._run(self._solver, u0, np.concatenate([[d], qp]), self.afm.workspace.u_lo,
-                          self.afm.workspace.u_hi, np.concatenate([[0.0], self.afm.lo]),
-                          np.concatenate([[0.0], self.afm.hi]))
+        ws = self.afm.workspace
+        if in_range(self.afm, u0, 0.0) and np.all(u0 >= ws.u_lo) and np.all(u0 <= ws.u_hi):
+            # the plane's minimiser inside every range: the convex QP's optimum, no inequality active
+            x, st = u0, {"status": "Solve_Succeeded (closed form: no range active)", "iter": 0, "success": True}
+        else:
+            x, st = self._run(self._ipopt(), u0, np.concatenate([[d], qp]), ws.u_lo, ws.u_hi,
+                              np.concatenate([[0.0], self.afm.lo]), np.concatenate([[0.0], self.afm.hi]))
         ok = st["success"] and self._in_range(x) and abs(float(self.afm.t_of(x)) - target) <= self.settings.constraint_tol
         status = st["status"]
         if not ok:

@@ -92,7 +92,7 @@ class EAFMController(BaseController):
 
     # ---- NLP -------------------------------------------------------------------------
     def _build(self) -> None:
-        """Build the IPOPT solver once: x = u, p = [t_d; s; J_ref] (eq. 4)."""
+        """Build the NLP once: x = u, p = [t_d; s; J_ref] (eq. 4); IPOPT on it at its first use."""
         afm = self.afm
         u = ca.MX.sym("u", afm.n_p)
         s = ca.MX.sym("s", afm.n_s)
@@ -101,8 +101,7 @@ class EAFMController(BaseController):
         e = self.eafm.expressions(s, u, self.objective.needs)
         J = self.objective.mx(s, u, e, afm.K)
         g = ca.vertcat(e["t_mean"] - td, ca.mtimes(ca.DM(afm.K), u))  # eq. 4 constraint; lo <= K u <= hi
-        nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
-        self._solver = ca.nlpsol(f"{self.name}_ipopt", "ipopt", nlp, ipopt_options(self.settings))
+        self._nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
         self._fast = None
         if self.settings.fast_path:
             fun = build_fast_function(u, s, J, e["t_mean"], f"{self.name}_fast")
@@ -110,7 +109,14 @@ class EAFMController(BaseController):
                                  kkt_tol=self.settings.ipopt_tol)
         self._lbg = np.concatenate([[0.0], afm.lo])
         self._ubg = np.concatenate([[0.0], afm.hi])
-        self.n_builds += 1
+
+    def _ipopt(self) -> ca.Function:
+        """The IPOPT solver of the NLP, built at its first use (once per controller): most
+        solves end on the fast path, and creating an IPOPT instance costs milliseconds."""
+        if self._solver is None:
+            self._solver = ca.nlpsol(f"{self.name}_ipopt", "ipopt", self._nlp, ipopt_options(self.settings))
+            self.n_builds += 1
+        return self._solver
 
     def reachable_interval(self, state: np.ndarray | None = None) -> tuple[float, float]:
         """Interval of EAFM-mean tool poses reachable from ``state`` over the workspace (µm)."""
@@ -249,7 +255,7 @@ class EAFMController(BaseController):
                            "objective": st["objective"]}
         jref = float(self._objective_np(s, u0[None, :], seeding=True)[0])
         jref = jref if jref > 1e-300 else 1.0
-        return self._run(self._solver, u0, np.concatenate([[target], s, [jref]]),
+        return self._run(self._ipopt(), u0, np.concatenate([[target], s, [jref]]),
                          self.afm.workspace.u_lo, self.afm.workspace.u_hi, self._lbg, self._ubg)
 
     def _result(self, s: np.ndarray, target: float, u: np.ndarray, status: str, success: bool,

@@ -120,6 +120,33 @@ def test_afm_baseline_is_the_smallest_motion(afm):
         assert r.objective <= other.min() + 1e-9
 
 
+def test_afm_baseline_closed_form_equals_ipopt(afm, nlpsol_calls):
+    """The plane's minimiser is returned without IPOPT when every range holds; it is the QP's
+    optimum, so IPOPT from the same start must agree; a command that would leave a range goes
+    to IPOPT (built once, then)."""
+    ctl = AFMController(afm)
+    rng = np.random.default_rng(11)
+    closed = ipopt_runs = 0
+    for s in _states(afm, 150, seed=11):
+        target = rng.uniform(0, 40)
+        r = ctl.solve(target, s)
+        qp = s[1:]
+        x, st = ctl._run(ctl._ipopt(), r.u, np.concatenate([[ctl.rset.d_of_target(target)], qp]),
+                         afm.workspace.u_lo, afm.workspace.u_hi, np.concatenate([[0.0], afm.lo]),
+                         np.concatenate([[0.0], afm.hi]))
+        assert st["success"]
+        # IPOPT's tolerances (1e-8 on the plane; its bounds relaxed by 1e-8 relative, ~3e-7 µm on
+        # an active range) let its objective fall ~1e-6 relative below the exact optimum
+        assert np.sum((afm.K @ r.u - qp) ** 2) <= np.sum((afm.K @ x - qp) ** 2) * (1 + 1e-5) + 1e-9
+        if "closed form" in r.status:
+            assert np.max(np.abs(x - r.u)) <= 1e-5
+        closed += "closed form" in r.status
+        ipopt_runs += "closed form" not in r.status
+    # both branches ran (from random states some plane minimisers leave a range)
+    assert closed >= 5 and ipopt_runs >= 5, (closed, ipopt_runs)
+    assert nlpsol_calls == ["afm_ipopt"]
+
+
 def _fd_grad(f, u, h):
     g = np.zeros(u.size)
     for j in range(u.size):
@@ -197,9 +224,22 @@ def test_unreachable_target_gives_interval(afm, eafm, opt):
 
 
 def test_solver_built_once_per_model(afm, eafm, nlpsol_calls):
-    ctl = OptimalController(eafm)
+    # IPOPT alone: built at the first solve, reused after
+    ctl = OptimalController(eafm, ControllerSettings(fast_path=False))
+    assert nlpsol_calls == [] and ctl.n_builds == 0
     for s, t in zip(_states(afm, 5, seed=7), (0.0, 10.0, 20.0, 30.0, -10.0)):
         ctl.solve(t, s)
+    assert len(nlpsol_calls) == 1 and ctl.n_builds == 1
+
+
+def test_ipopt_built_only_when_the_fast_path_needs_it(afm, eafm, nlpsol_calls):
+    ctl = OptimalController(eafm)
+    results = [ctl.solve(t, s) for s, t in zip(_states(afm, 5, seed=7), (0.0, 10.0, 20.0, 30.0, -10.0))]
+    assert all(r.success for r in results)
+    # the fast path converged everywhere here, so no IPOPT instance was made; at most one ever
+    assert nlpsol_calls == [] and ctl.n_builds == 0
+    ctl._ipopt()
+    ctl._ipopt()
     assert len(nlpsol_calls) == 1 and ctl.n_builds == 1
 
 

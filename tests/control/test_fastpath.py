@@ -85,7 +85,7 @@ def test_fast_path_matches_ipopt_from_the_same_starts(afm, pair):
             assert np.all(q >= afm.lo - 1e-9) and np.all(q <= afm.hi + 1e-9)
             assert abs(eafm.predict(s, x).t_mean[0] - t) <= 1e-8
             jref = float(slow._objective_np(s, U[i][None, :], seeding=True)[0])
-            xi, sti = slow._run(slow._solver, U[i], np.concatenate([[t], s, [jref]]), afm.workspace.u_lo,
+            xi, sti = slow._run(slow._ipopt(), U[i], np.concatenate([[t], s, [jref]]), afm.workspace.u_lo,
                                 afm.workspace.u_hi, slow._lbg, slow._ubg)
             if not sti["success"]:
                 continue
