@@ -20,7 +20,7 @@ from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
 import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
-from microctl.models.training import MAX_SPARSE_ROWS, MAX_TRAIN_ROWS, ResidualModelSettings
+from microctl.models.training import AUTO_SPARSE_ROWS, MAX_SPARSE_ROWS, ResidualModelSettings
 from microctl.stage.config import StageConfig, load_stage_config, load_yaml
 from microctl.util.packaged import missing_hint, resolve_config
 from microctl.util.fields import (
@@ -331,7 +331,7 @@ def parse_experiment_config(data: Any, source: str, base_dir: Path) -> Experimen
     rows = training.moves + training.refine_rounds * training.refine_moves
     if rows > MAX_SPARSE_ROWS:
         raise ck.fail("training", f"moves + refine_rounds × refine_moves = {rows} training rows; the residual model "
-                      f"is trained on at most {MAX_SPARSE_ROWS} (the sparse GP above {MAX_TRAIN_ROWS} rows)")
+                      f"is trained on at most {MAX_SPARSE_ROWS} (the sparse GP above {AUTO_SPARSE_ROWS} rows)")
     controller = read_settings(ck, top.get("controller"), "controller", ControllerSettings)
 
     oracle = _section(ck, top, "oracle", Oracle, {"grid": 5, "line_points": 5, "zooms": 0, "newton_steps": 1},

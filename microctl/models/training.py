@@ -27,7 +27,7 @@ from microctl.models.eafm import bind_to_stage
 from microctl.models.noise_dictionary import candidate_features, select_features
 from microctl.util.fields import setting, validate_settings
 
-__all__ = ["GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
+__all__ = ["AUTO_SPARSE_ROWS", "GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
            "noise_features_for", "train_residual_model", "noise_summary", "save_model"]
 
 
@@ -70,16 +70,22 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
 
 
 #: Most rows the exact VHGPR is trained on: its cost grows as n³ (3000 rows took over 4 minutes
-#: on a loaded 2-core machine, 200 000 do not fit in memory). Above it the default model is the
-#: sparse one (``gp: auto``, :mod:`microctl.gp.sparse`); ``gp: exact`` refuses a larger log
+#: on a loaded 2-core machine, 200 000 do not fit in memory); ``gp: exact`` refuses a larger log
 #: before any work with the advice to subsample it.
 MAX_TRAIN_ROWS = 2000
 #: Most rows the sparse model is trained on (its n x M matrices: ~3 GB at M = 256).
 MAX_SPARSE_ROWS = 100_000
 #: Rows of the seeded random subset on which the sparse model's hyperparameters are fitted.
 SPARSE_SUBSET = 1000
+#: ``gp: auto`` fits the exact VHGPR up to this many rows and the sparse form above: up to it the
+#: sparse form would fit its hyperparameters on every row exactly anyway; above it the exact fit
+#: grows as n³ and the exact posterior makes the controller's cost grow with n (its epistemic
+#: variance is O(n²) per evaluation) while the sparse one stays at its inducing points.
+#: ``scripts/bench_vhgpr.py``'s stage rows compare the two forms at 2000 moves (fit time, NLPD
+#: on held-out moves, controller time; docs/generated/bench_vhgpr.md).
+AUTO_SPARSE_ROWS = SPARSE_SUBSET
 #: The residual GP's forms: ``exact`` (VHGPR), ``sparse`` (inducing points), ``auto`` (exact up to
-#: :data:`MAX_TRAIN_ROWS` rows, sparse above).
+#: :data:`AUTO_SPARSE_ROWS` rows, sparse above).
 GP_FORMS = ("auto", "exact", "sparse")
 
 #: Prior variance of the affine trend's coefficients (standardised units: a trend of about
@@ -133,7 +139,7 @@ class ResidualModelSettings:
     seed : int
         Seed of the restarts.
     gp : str
-        The GP's form: ``"auto"`` (default: the exact VHGPR up to :data:`MAX_TRAIN_ROWS` rows,
+        The GP's form: ``"auto"`` (default: the exact VHGPR up to :data:`AUTO_SPARSE_ROWS` rows,
         the sparse one above), ``"exact"``, ``"sparse"`` (:mod:`microctl.gp.sparse`:
         hyperparameters from :data:`SPARSE_SUBSET` rows, the posterior on ``inducing`` points).
     inducing : int
@@ -159,7 +165,7 @@ class ResidualModelSettings:
 
 def uses_sparse(n: int, settings: ResidualModelSettings) -> bool:
     """Whether a residual model of n rows is fitted in the sparse form (``gp``, :data:`GP_FORMS`)."""
-    return settings.gp == "sparse" or (settings.gp == "auto" and n > MAX_TRAIN_ROWS)
+    return settings.gp == "sparse" or (settings.gp == "auto" and n > AUTO_SPARSE_ROWS)
 
 
 def max_train_rows(settings: ResidualModelSettings) -> int:

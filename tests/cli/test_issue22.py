@@ -399,11 +399,11 @@ def test_train_refuses_more_rows_than_it_can_fit(tmp_path, capsys, monkeypatch):
 
 
 def test_train_above_the_exact_limit_fits_the_sparse_form(tmp_path, capsys, monkeypatch):
-    """``--gp auto`` (the default) above MAX_TRAIN_ROWS fits the sparse model instead of refusing."""
+    """``--gp auto`` (the default) above AUTO_SPARSE_ROWS fits the sparse model instead of refusing."""
     import microctl.models.training as training
     from microctl.gp.fitted import FittedVHGPR
 
-    monkeypatch.setattr(training, "MAX_TRAIN_ROWS", 20)
+    monkeypatch.setattr(training, "AUTO_SPARSE_ROWS", 20)
     log = tmp_path / "log.csv"
     assert main(["collect", "--config", str(TABLE1), "-n", "30", "-o", str(log), "--quiet"]) == 0
     out = tmp_path / "m.npz"

@@ -13,6 +13,7 @@ from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.training import (
     GP_FORMS,
+    AUTO_SPARSE_ROWS,
     MAX_TRAIN_ROWS,
     NOISE_MODELS,
     ResidualModelSettings,
@@ -49,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--se", choices=("auto", "on", "off"), default=d.se,
                    help=f"the mean correction's SE part (default {d.se}: kept only where the data pay for it)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
-                   help=f"the GP's form (default {d.gp}: exact up to {MAX_TRAIN_ROWS} rows, sparse above)")
+                   help=f"the GP's form (default {d.gp}: exact up to {AUTO_SPARSE_ROWS} rows, sparse above)")
     p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
                    help=f"inducing points of the sparse form (default {d.inducing})")
     p.add_argument("--restarts", type=int, default=d.restarts, metavar="N",
