@@ -1,14 +1,17 @@
 #!/usr/bin/env python
 """Benchmark the EAFM optimal controller (eq. 4) against single-start solvers.
 
-For each size n of the residual training set: synthetic residual data over the Table I
-workspace with a planted heteroscedastic noise (three low-noise wells in (rx, ry) plus a
-z trend, so the problem has several local optima per target), seeded; a residual model
-(``--fit fixed``: the planted noise with fixed hyperparameters, no fit, seconds; ``--fit
-vhgpr``: a VHGPR fit with a wall-time budget); then per target (random target and random
-state):
+For each size n of the residual training set a residual model: by default (``--fit physical``)
+what ``collect`` + ``train`` give, n covering moves on sim_paper's simulator and the package's
+default residual model (``--gp auto``: the exact GP up to 1000 rows, the sparse one above;
+``--gp exact`` forces the exact one); or synthetic residual data over the Table I workspace with
+a planted heteroscedastic noise (three low-noise wells in (rx, ry) plus a z trend, so the
+problem has several local optima per target), seeded, with ``--fit fixed`` (the planted noise
+with fixed hyperparameters, no fit) or ``--fit vhgpr`` (a VHGPR fit with a wall-time budget).
+Then per target (random target and random state):
 
-- ``microctl``: the whole :meth:`OptimalController.solve` call (global seeding + IPOPT);
+- ``microctl``: the whole :meth:`OptimalController.solve` call (global seeding, fast SQP, IPOPT
+  where the fast path does not converge);
 - ``ipopt-1start``: the same IPOPT NLP from one cold start (the AFM smallest-motion command);
 - ``slsqp``, ``trust-constr``: scipy.optimize.minimize on the same problem from the same
   start, objective/constraint gradients from the same CasADi graphs;
@@ -88,7 +91,7 @@ def planted_data(afm, n, rng):
     return np.hstack([S, U]), y, ln
 
 
-def build_model(afm, n, seed, fit, fit_time):
+def build_model(afm, n, seed, fit, fit_time, gp="auto"):
     rng = np.random.default_rng(seed)
     X, y, ln = planted_data(afm, n, rng)
     t0 = time.perf_counter()
@@ -100,7 +103,7 @@ def build_model(afm, n, seed, fit, fit_time):
         with SimulatedStage(cfg, seed=seed) as st:
             S, U, T = execute_moves(st, training_moves(afm, "covering", n, seed))
         data = ResidualData(np.hstack([S, U]), T - afm.t_of(U), ())
-        return train_residual_model(data, afm, ResidualModelSettings(restarts=1), max_time=fit_time), \
+        return train_residual_model(data, afm, ResidualModelSettings(restarts=1, gp=gp), max_time=fit_time), \
             time.perf_counter() - t0
     else:
         m = VHGPR(n_restarts=1, random_state=seed, max_time=fit_time).fit(X, y)
@@ -149,7 +152,7 @@ class ScipyProblem:
 
 
 def bench_size(afm, n, args):
-    model, fit_s = build_model(afm, n, args.seed, args.fit, args.fit_time)
+    model, fit_s = build_model(afm, n, args.seed, args.fit, args.fit_time, args.gp)
     eafm = EAFM(afm, model)
     t0 = time.perf_counter()
     ctl = OptimalController(eafm, ControllerSettings(r_e=args.r_e, grid=args.controller_grid, n_polish=args.n_polish))
@@ -194,7 +197,7 @@ def bench_size(afm, n, args):
         # one cold IPOPT start on the same NLP
         jref = objective(s, u0) or 1.0
         t1 = time.process_time()
-        x, st = ctl._run(ctl._solver, u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
+        x, st = ctl._run(ctl._ipopt(), u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
                          afm.workspace.u_hi, ctl._lbg, ctl._ubg)
         dt = time.process_time() - t1
         ok = st["success"] and valid(s, x, target)
@@ -228,7 +231,8 @@ def bench_size(afm, n, args):
         reached = objs[i] <= best * (1 + REACH_REL) + 1e-300
         rows.append((n, m, np.median(t), t.min(), t.max(), np.median(rec[m]["it"]), 100 * np.mean(rec[m]["ok"]),
                      100 * np.mean(reached)))
-    return rows, fit_s, build_s
+    form = f"{model.posterior_form} GP on {model.X.shape[0]} points"
+    return rows, fit_s, build_s, form
 
 
 # --------------------------------------------------------------------------- start-up and serve
@@ -353,6 +357,14 @@ def report_startup_and_serve(args):
     with tempfile.TemporaryDirectory() as tmp:
         model = model_125(Path(tmp))
         if args.startup_runs:
+            # as `pip install` does for a regular install (numpy's and casadi's .pyc exist): without
+            # it, PYTHONDONTWRITEBYTECODE=1 (set on some machines) recompiles microctl every run
+            import compileall
+
+            compileall.compile_dir(str(ROOT / "microctl"), quiet=1)
+            print()
+            print("bytecode: microctl compiled before timing (compileall), as a regular pip install does"
+                  f" (PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', 'unset')})")
             rows, bars = bench_startup(model, args.startup_runs)
             print()
             print(f"start-up, CPU of the child process (user + system), median of {args.startup_runs} runs:")
@@ -384,6 +396,8 @@ def main(argv=None):
                    help="residual model: physical (default: the package's default model fitted to n covering moves "
                    "on sim_paper), fixed (planted heteroscedastic noise, fixed hyperparameters: g's GP variance "
                    "matters everywhere), or vhgpr (a plain VHGPR fit to the planted data)")
+    p.add_argument("--gp", choices=("auto", "exact", "sparse"), default="auto",
+                   help="the physical model's GP form (default auto: what `microctl train` fits at that size)")
     p.add_argument("--fit-time", type=float, default=300.0, help="VHGPR fit budget per size (s)")
     p.add_argument("--controller-grid", type=int, default=ControllerSettings().grid,
                    help="the controller's seeding grid per null-space axis (its setting 'grid')")
@@ -407,8 +421,8 @@ def main(argv=None):
     all_rows = []
     for n in sizes:
         with threadpool_limits(limits=1, user_api="blas"):
-            rows, fit_s, build_s = bench_size(afm, n, args)
-        print(f"n={n}: model {fit_s:.1f} s, controller build {build_s * 1e3:.0f} ms")
+            rows, fit_s, build_s, form = bench_size(afm, n, args)
+        print(f"n={n}: model {fit_s:.1f} s ({form}), controller build {build_s * 1e3:.0f} ms")
         all_rows += rows
     print()
     print(f"{'n':>5} {'method':>13} {'CPU med ms':>10} {'min ms':>8} {'max ms':>9} {'iter':>5} {'success %':>9} "

@@ -134,3 +134,18 @@ def test_train_bad_log_exit_2(tmp_path, capsys):
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "m.npz"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2 and "bad.csv" in err
+
+
+def test_one_shot_solve_never_imports_scipy(trained):
+    """Start-up (issue: the lab's loop): a one-shot ``solve`` loads a model, builds the controller,
+    solves and prints without ``scipy`` (its linear algebra alone costs more CPU than NumPy and
+    CasADi together); a regression would bring the import back silently."""
+    import subprocess
+    import sys
+
+    _, _, model, _ = trained
+    code = ("import sys\nfrom microctl.cli import main\n"
+            f"rc = main(['solve', '--config', {str(CONFIG)!r}, '--model', {str(model)!r}, '--target', '14'])\n"
+            "print('RC', rc, sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert "RC 0 []" in out, out[-2000:]
