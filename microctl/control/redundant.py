@@ -12,6 +12,10 @@ from microctl.models.afm import AnalyticForwardModel
 __all__ = ["RedundantSet", "grid_local_minima"]
 
 
+#: Polytopes already enumerated, by the bytes of (K, lo, hi).
+_POLYTOPES: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
 class RedundantSet:
     """Null-space coordinates of the tool map over the workspace polytope (for seeding).
 
@@ -41,8 +45,18 @@ class RedundantSet:
 
     @staticmethod
     def _polytope(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
-        """Vertices (m, n_p) of {lo <= K u <= hi} and edges as index pairs (e, 2)."""
-        K, lo, hi = afm.K, afm.lo, afm.hi
+        """Vertices (m, n_p) of {lo <= K u <= hi} and edges as index pairs (e, 2), enumerated once
+        per (K, lo, hi) (a controller and its AFM baseline share them; read-only arrays)."""
+        key = (afm.K.tobytes(), afm.K.shape, afm.lo.tobytes(), afm.hi.tobytes())
+        if key not in _POLYTOPES:
+            V, E = RedundantSet._enumerate(afm.K, afm.lo, afm.hi)
+            V.setflags(write=False)
+            E.setflags(write=False)
+            _POLYTOPES[key] = (V, E)
+        return _POLYTOPES[key]
+
+    @staticmethod
+    def _enumerate(K: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         A = np.vstack([K, -K])
         b = np.concatenate([hi, -lo])
         n_p = K.shape[1]

@@ -461,6 +461,22 @@ _StrictLoader.add_implicit_resolver(
 )
 
 
+if getattr(yaml, "__with_libyaml__", False):
+    class _StrictCLoader(yaml.cyaml.CParser, _StrictLoader):  # type: ignore[misc]
+        """:class:`_StrictLoader` on libyaml's parser (the same constructor and resolvers, marks
+        with line and column): parsing a stage file takes ~1 ms instead of ~12 ms of a one-shot
+        command's start-up."""
+
+        def __init__(self, stream: str):
+            yaml.cyaml.CParser.__init__(self, stream)
+            yaml.constructor.SafeConstructor.__init__(self)
+            yaml.resolver.Resolver.__init__(self)
+
+    _LOADER: type = _StrictCLoader
+else:  # PyYAML built without libyaml
+    _LOADER = _StrictLoader
+
+
 #: Most values (scalars, lists, mappings) a YAML document may expand to through its aliases.
 MAX_YAML_VALUES = 1_000_000
 
@@ -502,7 +518,7 @@ def load_yaml(path: str | Path) -> Any:
             "decoded; save the file as UTF-8"
         ) from None
     try:
-        doc = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        doc = yaml.load(text, Loader=_LOADER)  # noqa: S506 - a SafeLoader subclass
         size = _expanded_size(doc, {})
         if size > MAX_YAML_VALUES:
             raise ConfigError(f"{path}: the YAML expands to {size:.3g} values through its aliases (*name); at most "
