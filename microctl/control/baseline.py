@@ -11,7 +11,8 @@ from dataclasses import replace
 import casadi as ca
 import numpy as np
 
-from microctl.control.base import BaseController, in_range, unreachable
+from microctl.control.base import BaseController, unreachable
+from microctl.control.fastpath import FastSQP
 from microctl.control.ipopt import ipopt_options
 from microctl.control.redundant import RedundantSet
 from microctl.control.result import Controller, ControlResult, NoiseComparison
@@ -80,6 +81,7 @@ class AFMController(BaseController):
         self._nlp = {"x": u, "p": p, "f": ca.sumsqr(Ku - p[1:]) / scale,
                      "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
         self._solver: ca.Function | None = None
+        self._qp = FastSQP(None, afm.K, afm.lo, afm.hi)  # its active-set QP only
 
     def _ipopt(self) -> ca.Function:
         """IPOPT on the QP, built at its first use: only a command whose plane minimiser leaves
@@ -88,6 +90,30 @@ class AFMController(BaseController):
             self._solver = ca.nlpsol("afm_ipopt", "ipopt", self._nlp, ipopt_options(self.settings))
             self.n_builds += 1
         return self._solver
+
+    def _exact(self, u0: np.ndarray, d: float, qp: np.ndarray) -> tuple[np.ndarray | None, str]:
+        """The convex QP's optimum without IPOPT, or None.
+
+        ``u0`` minimises ``||K u - q_prev||^2`` on the plane ``w·u = d``: inside every range it is
+        the optimum (no inequality active); otherwise one step of the enumerated active-set QP
+        (:meth:`FastSQP.qp`, exact for a QP) from it, kept only inside the ranges and the
+        workspace box and on the plane (else IPOPT decides).
+        """
+        ws, K, w = self.afm.workspace, self.afm.K, self.afm.w_pred
+        tol = self.settings.constraint_tol
+
+        def valid(u: np.ndarray) -> bool:
+            # an active range is met to round-off, as IPOPT meets it to its tolerance
+            return bool(self._in_range(u) and np.all(u >= ws.u_lo - 1e-9) and np.all(u <= ws.u_hi + 1e-9)
+                         and abs(float(w @ u) - d) <= tol)
+
+        if valid(u0):
+            return u0, "closed form: no range active"
+        step = self._qp.qp(2.0 * K.T @ K, 2.0 * K.T @ (K @ u0 - qp), w, float(w @ u0) - d,
+                           self._qp.b - self._qp.A @ u0)
+        if step is not None and valid(u0 + step[0]):
+            return u0 + step[0], f"active-set QP: {int(np.count_nonzero(step[2]))} range(s) active"
+        return None, ""
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
               u_init: np.ndarray | None = None) -> ControlResult:
@@ -105,9 +131,9 @@ class AFMController(BaseController):
         kkt = np.block([[2 * K.T @ K, w[:, None]], [w[None, :], np.zeros((1, 1))]])
         u0 = np.linalg.solve(kkt, np.concatenate([2 * K.T @ qp, [d]]))[:n]
         ws = self.afm.workspace
-        if in_range(self.afm, u0, 0.0) and np.all(u0 >= ws.u_lo) and np.all(u0 <= ws.u_hi):
-            # the plane's minimiser inside every range: the convex QP's optimum, no inequality active
-            x, st = u0, {"status": "Solve_Succeeded (closed form: no range active)", "iter": 0, "success": True}
+        x, how = self._exact(u0, d, qp)
+        if x is not None:
+            st = {"status": f"Solve_Succeeded ({how})", "iter": 0, "success": True}
         else:
             x, st = self._run(self._ipopt(), u0, np.concatenate([[d], qp]), ws.u_lo, ws.u_hi,
                               np.concatenate([[0.0], self.afm.lo]), np.concatenate([[0.0], self.afm.hi]))

@@ -47,8 +47,8 @@ class FastSQP:
 
     Parameters
     ----------
-    fun : casadi.Function
-        From :func:`build_fast_function`.
+    fun : casadi.Function or None
+        From :func:`build_fast_function` (None: only :meth:`qp` is used, as the AFM baseline does).
     K : ndarray, shape (n_q, n_p)
     lo, hi : ndarray, shape (n_q,)
     max_iter : int
