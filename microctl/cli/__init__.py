@@ -14,7 +14,7 @@ the interpreter.
 from __future__ import annotations
 
 import sys
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from microctl.errors import INPUT_ERRORS, MicroctlError
 
@@ -166,10 +166,33 @@ def _on_unraisable(unraisable) -> None:
     sys.__unraisablehook__(unraisable)
 
 
+#: The thread-count variables of the BLAS libraries NumPy and CasADi load; a user's value wins.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_blas_thread(environ: dict, modules: Any) -> bool:
+    """Start the process's BLAS with one thread, unless the user chose a count or NumPy is loaded.
+
+    microctl runs its numerical work on one BLAS thread (:mod:`microctl.util.blas`: faster on
+    the small matrices it uses); a pool started with more threads only spins idle, and that
+    CPU is charged to the process (a one-shot ``solve``: about half of its CPU). Must run
+    before NumPy is imported (the pool is sized when the library loads). Returns whether it set
+    ``OPENBLAS_NUM_THREADS``.
+    """
+    if "numpy" in modules or any(v in environ for v in BLAS_THREAD_VARIABLES):
+        return False
+    environ["OPENBLAS_NUM_THREADS"] = "1"
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the process exit status."""
     import signal
 
+    if argv is None:  # the process's entry point (a library caller keeps its own BLAS)
+        import os
+
+        one_blas_thread(os.environ, sys.modules)
     _SIGINTS.clear()
     try:
         previous = signal.signal(signal.SIGINT, _on_sigint)
