@@ -8,7 +8,8 @@ default residual model (``--gp auto``: the exact GP up to 1000 rows, the sparse 
 a planted heteroscedastic noise (three low-noise wells in (rx, ry) plus a z trend, so the
 problem has several local optima per target), seeded, with ``--fit fixed`` (the planted noise
 with fixed hyperparameters, no fit) or ``--fit vhgpr`` (a VHGPR fit with a wall-time budget).
-Then per target (random target and random state):
+Then per target (random target and random state; each method runs over every target before the
+next starts, so one method's memory use does not slow another's timed solves):
 
 - ``microctl``: the whole :meth:`OptimalController.solve` call (global seeding, fast SQP, IPOPT
   where the fast path does not converge);
@@ -185,42 +186,42 @@ def bench_size(afm, n, args):
         return float(ctl._objective_np(s, u[None, :])[0])
 
     ctl.solve(float(targets[0]), states[0])  # warm the caches (first-call overheads) outside the timing
-    for k, (target, s) in enumerate(zip(targets, states)):
-        u0 = base.solve(target, s).u
-        # microctl
+    u0s = [base.solve(target, s).u for target, s in zip(targets, states)]
+
+    def run(m, target, s, u0):
+        """One timed solve by method m: (CPU s, command or None, success, iterations, objective or None)."""
         t1 = time.process_time()
-        r = ctl.solve(target, s)
-        dt = time.process_time() - t1
-        ok = r.success and valid(s, r.u, target)
-        rec["microctl"]["t"].append(dt); rec["microctl"]["it"].append(r.iterations)
-        rec["microctl"]["ok"].append(ok); rec["microctl"]["obj"].append(objective(s, r.u) if ok else np.inf)
-        # one cold IPOPT start on the same NLP
-        jref = objective(s, u0) or 1.0
-        t1 = time.process_time()
-        x, st = ctl._run(ctl._ipopt(), u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
-                         afm.workspace.u_hi, ctl._lbg, ctl._ubg)
-        dt = time.process_time() - t1
-        ok = st["success"] and valid(s, x, target)
-        rec["ipopt-1start"]["t"].append(dt); rec["ipopt-1start"]["it"].append(st["iter"])
-        rec["ipopt-1start"]["ok"].append(ok); rec["ipopt-1start"]["obj"].append(objective(s, x) if ok else np.inf)
-        for m in ("slsqp", "trust-constr"):
-            t1 = time.process_time()
+        if m == "microctl":
+            r = ctl.solve(target, s)
+            x, succ, nit = r.u, r.success, r.iterations
+        elif m == "ipopt-1start":  # one cold IPOPT start on the same NLP
+            jref = objective(s, u0) or 1.0
+            x, st = ctl._run(ctl._ipopt(), u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
+                             afm.workspace.u_hi, ctl._lbg, ctl._ubg)
+            succ, nit = st["success"], st["iter"]
+        elif m == "dense-grid":
+            U, obj, _ = ctl._seeds(s, target, args.grid if n < 1000 else args.grid_large)
+            fin = np.flatnonzero(np.isfinite(obj))
+            good = fin[valid_many(s, U[fin], target)] if fin.size else fin
+            # the full objective (the seeding may score large n with a cheaper proxy)
+            best_grid = float(ctl._objective_np(s, U[good]).min()) if good.size else np.inf
+            return time.process_time() - t1, None, bool(good.size), 0, best_grid
+        else:
             x, succ, nit = sp.run(m, s, target, u0)
-            dt = time.process_time() - t1
-            ok = succ and valid(s, x, target)
+        return time.process_time() - t1, x, succ, nit, None
+
+    # method after method, each over every target: interleaved, the dense grid's 10 MB
+    # temporaries made the next method's solve ~0.5 ms slower (the allocator returns them to
+    # the system and the next arrays fault their pages in again)
+    for i, m in enumerate(methods):
+        for k, (target, s, u0) in enumerate(zip(targets, states, u0s)):
+            dt, x, succ, nit, obj = run(m, target, s, u0)
+            ok = bool(succ) if x is None else bool(succ) and valid(s, x, target)
             rec[m]["t"].append(dt); rec[m]["it"].append(nit); rec[m]["ok"].append(ok)
-            rec[m]["obj"].append(objective(s, x) if ok else np.inf)
-        t1 = time.process_time()
-        U, obj, _ = ctl._seeds(s, target, args.grid if n < 1000 else args.grid_large)
-        fin = np.flatnonzero(np.isfinite(obj))
-        good = fin[valid_many(s, U[fin], target)] if fin.size else fin
-        # the full objective (the seeding may score large n with a cheaper proxy)
-        best_grid = float(ctl._objective_np(s, U[good]).min()) if good.size else np.inf
-        dt = time.process_time() - t1
-        rec["dense-grid"]["t"].append(dt); rec["dense-grid"]["it"].append(0)
-        rec["dense-grid"]["ok"].append(bool(good.size)); rec["dense-grid"]["obj"].append(best_grid)
-        if not args.quiet:
-            print(f"\r  n={n}: target {k + 1}/{args.targets}", end="", file=sys.stderr, flush=True)
+            rec[m]["obj"].append(obj if x is None else (objective(s, x) if ok else np.inf))
+            if not args.quiet:
+                print(f"\r  n={n}: method {i + 1}/{len(methods)}, target {k + 1}/{args.targets}", end="",
+                      file=sys.stderr, flush=True)
     if not args.quiet:
         print(file=sys.stderr)
     objs = np.array([rec[m]["obj"] for m in methods])
