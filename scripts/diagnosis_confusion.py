@@ -26,7 +26,7 @@ Tables printed:
    (3σ ≤ bar). Extra causes named besides the planted one are counted.
 2. *Clean*: no defect; any accepted mean cause or ``significant`` is a false positive.
 3. *Off-vocabulary*: a smooth bump, a periodic error in one input, a thermal drift with a time
-   constant, a direction-dependent curvature, and the history-dependent shapes of issue 21: a
+   constant, a direction-dependent curvature, and history-dependent shapes: a
    Prandtl-Ishlinskii hysteresis loop (half-width 0.15-0.3 µm, one actuator or all four) and a
    periodic gauge error (0.15-0.3 µm, period 8-12 µm along the reading) (equal numbers, in turn);
    correct when no vocabulary cause is named and ``unexplained`` is; the history and periodic
@@ -233,7 +233,8 @@ def main(argv=None) -> int:
     print(f"named correctly (equivalence class counts): {correct}/{args.cases} = "
           f"{100 * correct / max(args.cases, 1):.1f} % (bar >= 95 %)")
     print(f"cases with a vocabulary cause named besides the planted one: {extra_cases}/{args.cases}")
-    print(f"cases with a history or periodic flag (issue 21 leftover tests): {vocab_hist}/{args.cases}")
+    print(f"cases with a history or periodic flag (the leftover tests of microctl.diagnosis.history): "
+          f"{vocab_hist}/{args.cases}")
     print(f"parameters within the bars (10 % gain-like / 0.2 mm offsets / 10 % others): {params_good}/{params_checked} "
           f"resolvable cases (3σ <= bar); {unresolved} not resolvable on their data")
     print(f"significant held-out gain (extended vs afm, one-sided p < 0.05): {gain_sig}/{mean_cases} mean-cause cases")
