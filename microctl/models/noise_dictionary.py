@@ -229,7 +229,20 @@ def _score(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
     return np.where(u > 0, u * u / np.maximum(info, 1e-300), 0.0)
 
 
-def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+def _profile_terms(v: np.ndarray, Phi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For each ratio of :data:`PROFILE_RATIOS`: ``1 / V`` (n, P) and ``sum_i log(V_i / v_i)`` (P,)
+    with ``V = v + rho phi_j``, the parts of :func:`_profile_gains` that do not depend on the
+    residuals (computed once for the observed residual and every null draw)."""
+    rhos = float(np.mean(v)) * PROFILE_RATIOS
+    terms = []
+    for rho in rhos:
+        V = v[:, None] + rho * Phi  # (n, P)
+        terms.append((1.0 / V, np.sum(np.log(V / v[:, None]), axis=0)))
+    return terms
+
+
+def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray,
+                   terms: list[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
     """Log-likelihood gain of each candidate entering the current variance, profiled.
 
     The variance with candidate j is ``a (v + rho phi_j)``: the current fit's shape v (its
@@ -245,6 +258,8 @@ def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray
     v : ndarray, shape (n,)
         Current variance at the training inputs.
     Phi : ndarray, shape (n, P)
+    terms : list, optional
+        :func:`_profile_terms` of (v, Phi), when the caller has them.
 
     Returns
     -------
@@ -252,13 +267,11 @@ def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray
         max over rho of the profile log-likelihood minus its value at rho = 0 (>= 0).
     """
     n = len(v)
-    rhos = float(np.mean(v)) * PROFILE_RATIOS
     base = -0.5 * n * np.log(np.mean(R2 / v, axis=1))  # rho = 0 (the constant terms cancel)
     best = np.zeros((R2.shape[0], Phi.shape[1]))
-    for rho in rhos:
-        V = v[:, None] + rho * Phi  # (n, P)
-        a = (R2 @ (1.0 / V)) / n  # (b, P)
-        ll = -0.5 * (n * np.log(a) + np.sum(np.log(V / v[:, None]), axis=0))
+    for inv_v, logdet in (terms if terms is not None else _profile_terms(v, Phi)):
+        a = (R2 @ inv_v) / n  # (b, P)
+        ll = -0.5 * (n * np.log(a) + logdet)
         best = np.maximum(best, ll - base[:, None])
     return best
 
@@ -274,14 +287,15 @@ def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndar
     ndarray, shape (P,)
         ``(1 + #{max* >= T_j}) / (1 + NULL_DRAWS)``.
     """
-    obs = _profile_gains(r2[None, :], v, Phi)[0]
+    terms = _profile_terms(v, Phi)
+    obs = _profile_gains(r2[None, :], v, Phi, terms)[0]
     rng = np.random.default_rng(NULL_SEED)
     n = len(v)
     block = max(1, min(NULL_DRAWS, 500_000 // max(n, 1)))
     maxima = []
     for b in range(0, NULL_DRAWS, block):
         z = rng.standard_normal((min(block, NULL_DRAWS - b), n))
-        maxima.append(_profile_gains(z * z * v, v, Phi).max(axis=1))
+        maxima.append(_profile_gains(z * z * v, v, Phi, terms).max(axis=1))
     mx = np.sort(np.concatenate(maxima))
     exceed = NULL_DRAWS - np.searchsorted(mx, obs * (1 - 1e-12), side="left")
     return (1.0 + exceed) / (1.0 + NULL_DRAWS)
