@@ -52,6 +52,7 @@ from microctl.gp.shaped_features import ShapedFeatures
 from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
+from microctl.util.blas import single_thread_blas
 
 __all__ = ["candidate_features", "ball_load_map", "select_features", "Selection"]
 
@@ -293,9 +294,10 @@ def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndar
     n = len(v)
     block = max(1, min(NULL_DRAWS, 500_000 // max(n, 1)))
     maxima = []
-    for b in range(0, NULL_DRAWS, block):
-        z = rng.standard_normal((min(block, NULL_DRAWS - b), n))
-        maxima.append(_profile_gains(z * z * v, v, Phi, terms).max(axis=1))
+    with single_thread_blas():  # microctl.util.blas: with another process busy, a threaded BLAS spins
+        for b in range(0, NULL_DRAWS, block):
+            z = rng.standard_normal((min(block, NULL_DRAWS - b), n))
+            maxima.append(_profile_gains(z * z * v, v, Phi, terms).max(axis=1))
     mx = np.sort(np.concatenate(maxima))
     exceed = NULL_DRAWS - np.searchsorted(mx, obs * (1 - 1e-12), side="left")
     return (1.0 + exceed) / (1.0 + NULL_DRAWS)
