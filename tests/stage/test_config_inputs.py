@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import re
+from pathlib import Path
 
 import pytest
 import yaml
@@ -182,3 +184,31 @@ def test_cli_error_with_a_line_break_in_a_value_is_one_line(doc, tmp_path, capsy
     assert main(["stage", "show", "--config", str(p)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "drv\\n1" in err, err
+
+
+def test_libyaml_loader_reads_what_the_python_loader_reads(tmp_path):
+    """The strict loader on libyaml's parser (start-up speed) against the pure-Python strict
+    loader: the same documents for every shipped YAML file, the same refusals with line and
+    column for broken ones."""
+    import yaml
+
+    from microctl.stage import config as cfg
+
+    if cfg._LOADER is cfg._StrictLoader:
+        pytest.skip("PyYAML without libyaml: only the Python loader is used")
+    root = Path(__file__).resolve().parents[2]
+    files = sorted(root.glob("configs/**/*.yaml")) + sorted(root.glob("microctl/configs/**/*.yaml"))
+    assert len(files) >= 5
+    for f in files:
+        text = f.read_text(encoding="utf-8")
+        assert yaml.load(text, Loader=cfg._LOADER) == yaml.load(text, Loader=cfg._StrictLoader), f  # noqa: S506
+    for text, where in (("a: {x: 1, x: 2}\n", "line 1, column 11"), ("stage:\n  a: 1\n  a: 2\n", "line 3, column 3"),
+                        ("a: [1, 2\n", "line 2, column 1")):
+        p = tmp_path / "bad.yaml"
+        p.write_text(text)
+        with pytest.raises(ConfigError, match=re.escape(where)):
+            load_yaml(p)
+        with pytest.raises(yaml.YAMLError) as py_err:
+            yaml.load(text, Loader=cfg._StrictLoader)  # noqa: S506
+        mark = py_err.value.problem_mark
+        assert f"line {mark.line + 1}, column {mark.column + 1}" == where
