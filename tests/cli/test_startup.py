@@ -26,5 +26,6 @@ def test_entry_point_sets_it_and_a_library_call_does_not():
             "try:\n    main()\nexcept SystemExit:\n    pass\n"
             "print('ENTRY', os.environ.get('OPENBLAS_NUM_THREADS'))\n")
     env = {k: v for k, v in __import__("os").environ.items() if k not in BLAS_THREAD_VARIABLES}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60).stdout
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60,
+                         check=True).stdout
     assert "LIB None" in out and "ENTRY 1" in out, out
