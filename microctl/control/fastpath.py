@@ -62,6 +62,9 @@ class FastSQP:
     def __init__(self, fun: ca.Function, K: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, max_iter: int = 30,
                  constraint_tol: float = 1e-8, kkt_tol: float = 1e-7):
         self.fun = fun
+        # the five outputs as one dense vector: one conversion to NumPy per evaluation, not five
+        self._packed = None if fun is None else ca.Function(
+            f"{fun.name()}_packed", fun.mx_in(), [ca.vertcat(*[ca.vec(o) for o in fun.call(fun.mx_in())])])
         self.K = np.asarray(K, dtype=float)
         self.lo, self.hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
         self.max_iter = max_iter
@@ -80,9 +83,10 @@ class FastSQP:
 
     # ------------------------------------------------------------------ evaluation
     def _eval(self, u: np.ndarray, s: np.ndarray, lam: float):
-        J, gJ, t, gt, H = self.fun(u, s, lam)
-        return (float(J), np.asarray(gJ, dtype=float).ravel(), float(t), np.asarray(gt, dtype=float).ravel(),
-                np.asarray(H, dtype=float))
+        n = u.size
+        v = self._packed(u, s, lam).full().ravel()  # [J; dJ/du; t; dt/du; vec(H)] (H column-major)
+        return (float(v[0]), v[1:1 + n], float(v[1 + n]), v[2 + n:2 + 2 * n],
+                v[2 + 2 * n:].reshape(n, n, order="F"))
 
     # ------------------------------------------------------------------ the QP step
     def qp(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
