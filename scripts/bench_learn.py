@@ -109,7 +109,9 @@ def run_rig(family: str, seed: int, start: int, moves: int, every: int, restarts
     return {"family": family, "seed": seed, "start": start, "moves": moves, "refits_at": refits,
             "frozen": {"targets": rows_frozen, "pass": passes(rows_frozen), "selected": sel0},
             "learned": {"targets": rows_learned, "pass": passes(rows_learned), "selected": sel,
-                        "n_train": int(learned.X.shape[0])},
+                        # rows of the last fit (a sparse model's X holds its inducing points instead)
+                        "n_train": int((learned.info.get("sparse") or {}).get("n", learned.X.shape[0])),
+                        "form": learned.posterior_form},
             "operate_rms_error_um": {"first_100": float(np.sqrt(np.mean(err[:100] ** 2))),
                                      "last_100": float(np.sqrt(np.mean(err[-100:] ** 2)))},
             "time_s": {"train": t_train, "operate": t_operate, "total": time.perf_counter() - t0}}
@@ -162,7 +164,8 @@ def markdown(rows: list[dict], results: list[dict], header: str, command: str, w
               "Noise sources selected per rig (frozen → learned):", ""]
     for res in results:
         lines.append(f"- {res['family']} rig {res['seed']}: {res['frozen']['selected'] or []} → "
-                     f"{res['learned']['selected'] or []} ({res['learned']['n_train']} moves)")
+                     f"{res['learned']['selected'] or []} ({res['learned']['n_train']} moves, "
+                     f"{res['learned']['form']} GP)")
     return "\n".join(lines) + "\n"
 
 
@@ -218,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
           f"learned {sum(r['learned_pass'] for r in rows)}/{n}")
     for res in results:
         print(f"  selected, {res['family']} rig {res['seed']}: {res['frozen']['selected'] or []} -> "
-              f"{res['learned']['selected'] or []} ({res['learned']['n_train']} moves)")
+              f"{res['learned']['selected'] or []} ({res['learned']['n_train']} moves, {res['learned']['form']} GP)")
     print(f"wall time {wall:.0f} s")
     command = "python scripts/bench_learn.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.markdown:
