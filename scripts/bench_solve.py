@@ -190,12 +190,12 @@ def bench_size(afm, n, args):
 
     def run(m, target, s, u0):
         """One timed solve by method m: (CPU s, command or None, success, iterations, objective or None)."""
+        jref = (objective(s, u0) or 1.0) if m == "ipopt-1start" else None  # the NLP's scale, untimed
         t1 = time.process_time()
         if m == "microctl":
             r = ctl.solve(target, s)
             x, succ, nit = r.u, r.success, r.iterations
         elif m == "ipopt-1start":  # one cold IPOPT start on the same NLP
-            jref = objective(s, u0) or 1.0
             x, st = ctl._run(ctl._ipopt(), u0, np.concatenate([[target], s, [jref]]), afm.workspace.u_lo,
                              afm.workspace.u_hi, ctl._lbg, ctl._ubg)
             succ, nit = st["success"], st["iter"]
