@@ -10,7 +10,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -129,19 +128,26 @@ class _InterruptedDuringMove(SimulatedStage):
     def move(self, u):
         self.calls += 1
         if self.calls == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)
+            # raised in this (the main) thread, so its handler runs here, inside the move; a
+            # process-directed os.kill failed this test in the full suite only (twice, never in
+            # any subset I ran); the real Ctrl-C of a terminal is the next test's, in a subprocess
+            signal.raise_signal(signal.SIGINT)
         return super().move(u)
 
 
 def test_ctrl_c_during_a_move_still_logs_it(trained, tmp_path):
     stage, _, model = trained
     log = tmp_path / "int.csv"
-    with api.Operator(api.Controller(stage, model), _InterruptedDuringMove(stage.config), log=log) as op:
-        op.move(5.0)
-        with pytest.raises(KeyboardInterrupt):
-            op.move(6.0)
-        assert op.moves == 2
+    # the interpreter's own handler, whatever an earlier test left (restored after the test)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with api.Operator(api.Controller(stage, model), _InterruptedDuringMove(stage.config), log=log) as op:
+            op.move(5.0)
+            with pytest.raises(KeyboardInterrupt):
+                op.move(6.0)
+            assert op.moves == 2
+    finally:
+        signal.signal(signal.SIGINT, previous)
     got = read_log(log, stage.config.stage)
     assert len(got) == 2 and got.seq.tolist() == [0, 1]
 
