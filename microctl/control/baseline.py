@@ -12,7 +12,7 @@ import casadi as ca
 import numpy as np
 
 from microctl.control.base import BaseController, unreachable
-from microctl.control.fastpath import FastSQP
+from microctl.control.fastpath import ActiveSetQP
 from microctl.control.ipopt import ipopt_options
 from microctl.control.redundant import RedundantSet
 from microctl.control.result import Controller, ControlResult, NoiseComparison
@@ -81,7 +81,7 @@ class AFMController(BaseController):
         self._nlp = {"x": u, "p": p, "f": ca.sumsqr(Ku - p[1:]) / scale,
                      "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
         self._solver: ca.Function | None = None
-        self._qp = FastSQP(None, afm.K, afm.lo, afm.hi)  # its active-set QP only
+        self._qp = ActiveSetQP(afm.K, afm.lo, afm.hi)
 
     def _ipopt(self) -> ca.Function:
         """IPOPT on the QP, built at its first use: only a command whose plane minimiser leaves
@@ -96,7 +96,7 @@ class AFMController(BaseController):
 
         ``u0`` minimises ``||K u - q_prev||^2`` on the plane ``w·u = d``: inside every range it is
         the optimum (no inequality active); otherwise one step of the enumerated active-set QP
-        (:meth:`FastSQP.qp`, exact for a QP) from it, kept only inside the ranges and the
+        (:class:`ActiveSetQP`, exact for a QP) from it, kept only inside the ranges and the
         workspace box and on the plane (else IPOPT decides).
         """
         ws, K, w = self.afm.workspace, self.afm.K, self.afm.w_pred
@@ -109,7 +109,7 @@ class AFMController(BaseController):
 
         if valid(u0):
             return u0, "closed form: no range active"
-        step = self._qp.qp(2.0 * K.T @ K, 2.0 * K.T @ (K @ u0 - qp), w, float(w @ u0) - d,
+        step = self._qp.solve(2.0 * K.T @ K, 2.0 * K.T @ (K @ u0 - qp), w, float(w @ u0) - d,
                            self._qp.b - self._qp.A @ u0)
         if step is not None and valid(u0 + step[0]):
             return u0 + step[0], f"active-set QP: {int(np.count_nonzero(step[2]))} range(s) active"

@@ -21,7 +21,7 @@ import itertools
 import casadi as ca
 import numpy as np
 
-__all__ = ["FastSQP", "build_fast_function"]
+__all__ = ["ActiveSetQP", "FastSQP", "build_fast_function"]
 
 
 def build_fast_function(u: ca.MX, s: ca.MX, J: ca.MX, t: ca.MX, name: str) -> ca.Function:
@@ -48,7 +48,7 @@ class FastSQP:
     Parameters
     ----------
     fun : casadi.Function or None
-        From :func:`build_fast_function` (None: only :meth:`qp` is used, as the AFM baseline does).
+        From :func:`build_fast_function` (None: only :meth:`qp` is used).
     K : ndarray, shape (n_q, n_p)
     lo, hi : ndarray, shape (n_q,)
     max_iter : int
@@ -61,7 +61,6 @@ class FastSQP:
 
     def __init__(self, fun: ca.Function, K: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, max_iter: int = 30,
                  constraint_tol: float = 1e-8, kkt_tol: float = 1e-7):
-        self.fun = fun
         # the five outputs as one dense vector: one conversion to NumPy per evaluation, not five
         self._packed = None if fun is None else ca.Function(
             f"{fun.name()}_packed", fun.mx_in(), [ca.vertcat(*[ca.vec(o) for o in fun.call(fun.mx_in())])])
@@ -70,16 +69,8 @@ class FastSQP:
         self.max_iter = max_iter
         self.constraint_tol = constraint_tol
         self.kkt_tol = kkt_tol
-        n_q, n_p = self.K.shape
-        self.A = np.vstack([self.K, -self.K])  # inequalities A (u + d) >= b, b = [lo; -hi]
-        self.b = np.concatenate([self.lo, -self.hi])
-        sets = [()]
-        for r in range(1, n_p):
-            sets += [c for c in itertools.combinations(range(2 * n_q), r)
-                     if not any(i + n_q in c for i in c if i < n_q)]  # not both bounds of one actuator
-        self._groups = [np.array([w for w in sets if len(w) == r], dtype=int).reshape(-1, r) if r else
-                        np.zeros((1, 0), dtype=int) for r in range(n_p)]
-        self.usable = len(sets) <= 2000
+        self._qp = ActiveSetQP(self.K, self.lo, self.hi)
+        self.A, self.b, self.usable = self._qp.A, self._qp.b, self._qp.usable
 
     # ------------------------------------------------------------------ evaluation
     def _eval(self, u: np.ndarray, s: np.ndarray, lam: float):
@@ -91,52 +82,8 @@ class FastSQP:
     # ------------------------------------------------------------------ the QP step
     def qp(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
            ) -> tuple[np.ndarray, float, np.ndarray] | None:
-        """``min 1/2 d'Bd + g'd s.t. a'd = -c, A d >= slack`` (B positive definite) by its active sets.
-
-        A strictly convex QP has one KKT point, its minimum: the active sets are tried by size
-        (none, one range, two ranges), each size's KKT systems solved in one batch, and the first
-        primal and dual feasible solution is returned.
-
-        Parameters
-        ----------
-        B : ndarray, shape (n_p, n_p)
-        g, a : ndarray, shape (n_p,)
-        c : float
-        slack : ndarray, shape (2 n_q,)
-            ``b - A u``: the inequalities on the step.
-
-        Returns
-        -------
-        (d, lam, mu) or None
-            Step (n_p,), multiplier of the equality, multipliers of the inequalities (2 n_q,);
-            None when no active set gives a KKT point (an infeasible linearisation).
-        """
-        n = B.shape[0]
-        tol = 1e-9 * (1.0 + np.abs(slack))
-        for W in self._groups:
-            k, size = W.shape
-            m = n + 1 + size
-            M = np.zeros((k, m, m))
-            rhs = np.zeros((k, m))
-            M[:, :n, :n] = B
-            M[:, :n, n] = -a
-            M[:, n, :n] = a
-            rhs[:, :n] = -g
-            rhs[:, n] = -c
-            if size:
-                AW = self.A[W]  # (k, size, n)
-                M[:, :n, n + 1:] = -AW.transpose(0, 2, 1)
-                M[:, n + 1:, :n] = AW
-                rhs[:, n + 1:] = slack[W]
-            X, ok = _solve_batch(M, rhs)
-            D, MU = X[:, :n], X[:, n + 1:]
-            good = ok & np.all(MU >= -1e-12, axis=1) & np.all(D @ self.A.T >= slack - tol, axis=1)
-            if np.any(good):
-                j = int(np.flatnonzero(good)[0])
-                mu = np.zeros(self.A.shape[0])
-                mu[W[j]] = MU[j]
-                return D[j], float(X[j, n]), mu
-        return None
+        """The SQP's quadratic subproblem: :meth:`ActiveSetQP.solve`."""
+        return self._qp.solve(B, g, a, c, slack)
 
     # ------------------------------------------------------------------ the solve
     def solve(self, u0: np.ndarray, s: np.ndarray, target: float, jref: float | None = None
@@ -210,6 +157,81 @@ class FastSQP:
     def _in_range(self, u: np.ndarray) -> bool:
         q = self.K @ u
         return bool(np.all(q >= self.lo - 1e-9) and np.all(q <= self.hi + 1e-9))
+
+
+class ActiveSetQP:
+    """The exact QP of one step over the ranges ``lo <= K (u + d) <= hi`` with one equality, by
+    enumerating its active sets (at most n_p - 1 ranges active with the equality).
+
+    Held by :class:`FastSQP` for its steps and by the AFM baseline for its convex QP.
+
+    Parameters
+    ----------
+    K : ndarray, shape (n_q, n_p)
+    lo, hi : ndarray, shape (n_q,)
+    """
+
+    def __init__(self, K: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        K = np.asarray(K, dtype=float)
+        n_q, n_p = K.shape
+        self.A = np.vstack([K, -K])  # inequalities A (u + d) >= b, b = [lo; -hi]
+        self.b = np.concatenate([np.asarray(lo, dtype=float), -np.asarray(hi, dtype=float)])
+        sets = [()]
+        for r in range(1, n_p):
+            sets += [c for c in itertools.combinations(range(2 * n_q), r)
+                     if not any(i + n_q in c for i in c if i < n_q)]  # not both bounds of one actuator
+        self._groups = [np.array([w for w in sets if len(w) == r], dtype=int).reshape(-1, r) if r else
+                        np.zeros((1, 0), dtype=int) for r in range(n_p)]
+        self.usable = len(sets) <= 2000
+
+    def solve(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
+           ) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """``min 1/2 d'Bd + g'd s.t. a'd = -c, A d >= slack`` (B positive definite) by its active sets.
+
+        A strictly convex QP has one KKT point, its minimum: the active sets are tried by size
+        (none, one range, two ranges), each size's KKT systems solved in one batch, and the first
+        primal and dual feasible solution is returned.
+
+        Parameters
+        ----------
+        B : ndarray, shape (n_p, n_p)
+        g, a : ndarray, shape (n_p,)
+        c : float
+        slack : ndarray, shape (2 n_q,)
+            ``b - A u``: the inequalities on the step.
+
+        Returns
+        -------
+        (d, lam, mu) or None
+            Step (n_p,), multiplier of the equality, multipliers of the inequalities (2 n_q,);
+            None when no active set gives a KKT point (an infeasible linearisation).
+        """
+        n = B.shape[0]
+        tol = 1e-9 * (1.0 + np.abs(slack))
+        for W in self._groups:
+            k, size = W.shape
+            m = n + 1 + size
+            M = np.zeros((k, m, m))
+            rhs = np.zeros((k, m))
+            M[:, :n, :n] = B
+            M[:, :n, n] = -a
+            M[:, n, :n] = a
+            rhs[:, :n] = -g
+            rhs[:, n] = -c
+            if size:
+                AW = self.A[W]  # (k, size, n)
+                M[:, :n, n + 1:] = -AW.transpose(0, 2, 1)
+                M[:, n + 1:, :n] = AW
+                rhs[:, n + 1:] = slack[W]
+            X, ok = _solve_batch(M, rhs)
+            D, MU = X[:, :n], X[:, n + 1:]
+            good = ok & np.all(MU >= -1e-12, axis=1) & np.all(D @ self.A.T >= slack - tol, axis=1)
+            if np.any(good):
+                j = int(np.flatnonzero(good)[0])
+                mu = np.zeros(self.A.shape[0])
+                mu[W[j]] = MU[j]
+                return D[j], float(X[j, n]), mu
+        return None
 
 
 def _reduced_convex(B: np.ndarray, a: np.ndarray) -> np.ndarray:
