@@ -136,6 +136,13 @@ class VHGPR:
         synthetic with the noise driven by such an input (``scripts/bench_vhgpr.py``,
         ``synthetic3d``), the extra run finds the heteroscedastic optimum the default misses.
         The sparse model (:mod:`microctl.gp.sparse`) fits its hyperparameters with it.
+    warm_start : FittedVHGPR, optional
+        A model fitted to the same kind of data whose hyperparameters start the fit instead of
+        the homoscedastic GP: one run (``n_restarts`` and ``g_start`` are not used), f's and g's
+        kernels as they are, g's prior-mean coefficients matched by feature name (so a refit
+        with some noise sources dropped starts where the larger fit ended), the variational
+        parameters from the start when it was fitted to these very points, else at their usual
+        start. Needs ``se`` "on" or "off" (the start's choice), and kernels of the same form.
     """
 
     def __init__(
@@ -154,6 +161,7 @@ class VHGPR:
         se: str = "on",
         propagate_noise_parameter_uncertainty: bool = False,
         g_start: str = "f",
+        warm_start: Any = None,
     ) -> None:
         if int(n_restarts) != n_restarts or n_restarts < 1:
             raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
@@ -179,8 +187,11 @@ class VHGPR:
         if se != "on" and linear is False:
             raise ConfigError(f"VHGPR: se={se!r} needs a linear trend (linear=True or input indices); "
                               "without it f would be a constant")
+        if warm_start is not None and se == "auto":
+            raise ConfigError("VHGPR: a warm start needs se 'on' or 'off' (the start model's choice), not 'auto'")
         self.se = se
         self.g_start = g_start
+        self.warm_start = warm_start
         self.propagate = bool(propagate_noise_parameter_uncertainty)
         self.bias = bool(bias)
         self.linear = linear
@@ -249,14 +260,19 @@ class VHGPR:
         g_spec = KernelSpec(d=d, bias=self.bias)
         lin_bounds = self._linear_bounds(d)
         p = 0 if Phi is None else Phi.shape[1]
-        gp, loo, used = fit_homoscedastic(Xs, ys, f_spec, rng, lin_bounds)
-        kern = gp[:-1]
-        # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
-        # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
-        # g's kernel: f's lengthscales, unit signal variance.
-        g_kern = np.concatenate([kern[:d], [0.0], [-4.0] if self.bias else []])
-        mean0 = init_mean_coef(loo, None if Phi is None else Phi[used], float(gp[-1]))
-        x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, mean0])
+        if self.warm_start is None:
+            gp, loo, used = fit_homoscedastic(Xs, ys, f_spec, rng, lin_bounds)
+            kern = gp[:-1]
+            # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
+            # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
+            # g's kernel: f's lengthscales, unit signal variance.
+            g_kern = np.concatenate([kern[:d], [0.0], [-4.0] if self.bias else []])
+            mean0 = init_mean_coef(loo, None if Phi is None else Phi[used], float(gp[-1]))
+            x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, mean0])
+        else:
+            gp = kern = None
+            names = () if Phi is None else tuple(nf.names)
+            x_init = self._warm_point(n, f_spec, g_spec, names, data["training_hash"])
 
         max_iter = self.max_iter if self.max_iter is not None else default_max_iter(n)
         deadline = None if self.max_time is None else t0 + float(self.max_time)
@@ -294,6 +310,23 @@ class VHGPR:
             g_feature_params=() if nf is None else tuple((float(a), float(b)) for a, b in nf.params),
         )
 
+    def _warm_point(self, n: int, f_spec: KernelSpec, g_spec: KernelSpec, names: tuple[str, ...],
+                    thash: str) -> np.ndarray:
+        """The initial point from ``warm_start`` (see the class), shape (layout size,)."""
+        w = self.warm_start
+        kf, kg = w.f_kernel, w.g_kernel
+        if kf.spec != f_spec or kg.spec != g_spec:
+            raise ConfigError(f"VHGPR: the warm start's kernels ({kf.spec}, {kg.spec}) are not of this fit's form "
+                              f"({f_spec}, {g_spec})")
+        coef = {} if w.g_log_feature_coef is None else dict(zip(w.g_feature_names, np.asarray(w.g_log_feature_coef)))
+        missing = [nm for nm in names if nm not in coef]
+        if missing:
+            raise ConfigError(f"VHGPR: the warm start has no coefficient for the noise feature(s) {missing}; "
+                              f"it has {sorted(coef)}")
+        same = w.training_hash == thash and np.size(w.log_lambda) == n
+        lam = np.array(w.log_lambda, dtype=float) if same else np.full(n, math.log(0.5))
+        return np.concatenate([lam, kf.pack(), kg.pack(), [float(w.g_mu0)], [float(coef[nm]) for nm in names]])
+
     def _fit_variants(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, f_spec: KernelSpec,
                       g_spec: KernelSpec, p: int, lin_bounds: tuple[tuple[float, float], ...] | None,
                       rng: np.random.Generator, deadline: float | None, max_iter: int, Phi: np.ndarray | None
@@ -322,7 +355,8 @@ class VHGPR:
             layout, best, runs = fits[0]
         return layout, best, runs, selection
 
-    def _info(self, state: dict, runs: list[dict], gp: np.ndarray, kern: np.ndarray, selection: dict | None,
+    def _info(self, state: dict, runs: list[dict], gp: np.ndarray | None, kern: np.ndarray | None,
+              selection: dict | None,
               coef_cov: np.ndarray | None, log_c: np.ndarray, max_iter: int, t0: float) -> dict:
         """The fit's diagnostics record (``FittedVHGPR.info``)."""
         nf = self.noise_features
@@ -338,7 +372,9 @@ class VHGPR:
             "runs": runs,
             "iterations": int(sum(r.get("iterations", 0) for r in runs)),
             "evaluations": int(sum(r.get("evaluations", 0) for r in runs)),
-            "homoscedastic_init": {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]},
+            "homoscedastic_init": (None if gp is None else
+                                   {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]}),
+            "warm_start": self.warm_start is not None,
             "se_selection": selection,
             "noise_parameters": noise_parameters,
             "time_s": time.perf_counter() - t0,
@@ -361,6 +397,8 @@ class VHGPR:
         runs: list[dict] = []
         best: tuple[float, np.ndarray] | None = None
         starts: list[int | str] = [*range(self.n_restarts), *(["g_unit"] if self.g_start == "both" else [])]
+        if self.warm_start is not None:  # one run, from the warm start
+            starts = [0]
         for k in starts:
             if k == 0:
                 x0 = x_init

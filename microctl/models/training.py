@@ -235,8 +235,10 @@ def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
 
 
 def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
-         features: NoiseFeatures | None, noise_model: str, max_time: float | None) -> FittedVHGPR:
-    """One VHGPR fit of the residual with the settings' mean model and the given noise model."""
+         features: NoiseFeatures | None, noise_model: str, max_time: float | None,
+         warm_start: FittedVHGPR | None = None) -> FittedVHGPR:
+    """One VHGPR fit of the residual with the settings' mean model and the given noise model
+    (from ``warm_start``'s hyperparameters when given: :class:`~microctl.gp.trainer.VHGPR`)."""
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
     sparse = uses_sparse(len(data.y), st)
@@ -245,7 +247,7 @@ def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSetting
                     n_restarts=st.restarts,
                     propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
                     max_iter=st.max_iter, random_state=st.seed, max_time=max_time,
-                    g_start="both" if sparse else "f")
+                    g_start="both" if sparse else "f", warm_start=warm_start)
     if sparse:
         from microctl.gp.sparse import SparseVHGPR
 
@@ -268,14 +270,19 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     The selection (names, log-likelihood gains and the gains they needed) is in
     ``info["noise_selection"]``.
     """
-    if uses_sparse(len(data.y), st):
+    sparse = uses_sparse(len(data.y), st)
+    if sparse:
         from microctl.gp.sparse import subset_rows
 
         # the first fit only gives f for the residuals: an exact fit on the rows the sparse model's
-        # hyperparameters are fitted on does (the selection still reads all n residuals)
+        # hyperparameters are fitted on does (the selection still reads all n residuals), from
+        # one start; f's SE part is chosen there (BIC) once for the fits that follow
         idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
         sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
-        first = _fit(sub, afm, replace(st, gp="exact"), noise_features_for(afm), "physical", max_time)
+        first = _fit(sub, afm, replace(st, gp="exact", restarts=1), noise_features_for(afm), "physical", max_time)
+        chosen = first.info.get("se_selection")
+        if chosen is not None:
+            st = replace(st, se="on" if chosen["kept_se"] else "off")
     else:
         first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
     r = data.y - first.predict(data.X).f_mean
@@ -309,9 +316,10 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         record["selected"] = [names[j] for j in keep]
         record["gains_nats"] = [record["gains_nats"][j] for j in keep]
         record["p_adjusted"] = [record["p_adjusted"][j] for j in keep]
+        # on many rows (sparse) the refit starts where the larger fit ended (one run)
         model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
                               [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
-                              max_time)
+                              max_time, warm_start=model if sparse else None)
     return replace(model, info={**model.info, "noise_selection": record})
 
 
@@ -323,12 +331,12 @@ PRUNE_SHARE = 1e-3
 PRUNE_Z = 1.0
 
 
-def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time) -> FittedVHGPR:
+def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time, warm_start=None) -> FittedVHGPR:
     """The residual model with exactly the given sources as g's prior mean (none: the constant)."""
     if not names:  # the constant prior mean, under the dictionary's name (it chose no source)
-        return replace(_fit(data, afm, st, None, "hgp", max_time), noise_model_name="dictionary")
+        return replace(_fit(data, afm, st, None, "hgp", max_time, warm_start), noise_model_name="dictionary")
     feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
-    return _fit(data, afm, st, feats, "dictionary", max_time)
+    return _fit(data, afm, st, feats, "dictionary", max_time, warm_start)
 
 
 def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:

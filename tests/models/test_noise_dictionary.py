@@ -181,3 +181,37 @@ def test_a_source_the_bound_fit_does_not_support_is_dropped():
     assert _effective_sources(model, X) == [0]
     info["noise_parameters"]["c_std"] = [0.1, 0.1, 0.1, 0.1]
     assert _effective_sources(model, X) == [0, 2]
+
+
+def test_the_sparse_path_fits_once_then_starts_the_pruned_refit_where_it_ended(tmp_path, monkeypatch):
+    """On many rows (the sparse form; here made small: 300 moves, sparse above 150) the dictionary
+    fits its first model (the residuals' mean) from one start, fixes f's SE choice there for the
+    fits that follow, and starts the refit after a pruning from the fit it prunes (one run);
+    the planted stick-slip of sim_paper (PZT 4) is still selected."""
+    from microctl import api
+    from microctl.measurement.log import read_log
+    from microctl.models import training
+
+    stage = api.load_stage(ROOT / "configs/stage/sim_paper.yaml")
+    log = tmp_path / "log.csv"
+    api.collect(stage, 300, log, seed=5)
+    data = training.residual_dataset(read_log(log, stage.config.stage), stage.afm)
+    monkeypatch.setattr(training, "AUTO_SPARSE_ROWS", 150)
+    monkeypatch.setattr(training, "SPARSE_SUBSET", 150)
+    calls = []
+    real_fit = training._fit
+
+    def fit(data, afm, st, features, noise_model, max_time, warm_start=None):
+        calls.append((len(data.y), st.restarts, st.se, warm_start is not None))
+        return real_fit(data, afm, st, features, noise_model, max_time, warm_start)
+
+    monkeypatch.setattr(training, "_fit", fit)
+    monkeypatch.setattr(training, "_effective_sources", lambda model, X: [])  # prune every source
+    model = training.train_residual_model(data, stage.afm, training.ResidualModelSettings(inducing=40))
+    sel = model.info["noise_selection"]
+    assert "dq4:sq" in sel["dropped_in_fit"] and sel["selected"] == []
+    (n1, restarts1, se1, warm1), (n2, _, se2, warm2), (n3, _, se3, warm3) = calls
+    assert (n1, restarts1, se1, warm1) == (150, 1, "auto", False)
+    assert (n2, n3) == (300, 300) and se2 == se3 and se2 in ("on", "off") and (warm2, warm3) == (False, True)
+    assert model.posterior_form == "sparse" and model.info["warm_start"] is True
+    assert model.info["restarts_tried"] == 1
