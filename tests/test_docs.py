@@ -120,7 +120,7 @@ def test_paper_scale_offsets_match_the_code(tmp_path_factory):
     text = _page("paper_scale.md")
     got = tables(text)
     want = tables("\n".join(reproduce.offsets_markdown([(0, tiny_results("paper_scale.md", tmp_path_factory))])))
-    for name in ("seed_offsets", "offset_summary"):
+    for name in ("seed_offsets", "offset_summary", "paper_scale_bars"):
         assert got[name][0] == want[name][0], f"paper_scale.md: table '{name}' header differs from the code's"
     quantities = {r[1] for r in got["seed_offsets"][1:]}
     assert quantities == {r[1] for r in want["seed_offsets"][1:]}
