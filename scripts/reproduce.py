@@ -62,7 +62,7 @@ BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--m
 #: Captured-output benchmarks: section -> (script, arguments).
 CAPTURED = {
     "bench_solve": ("scripts/bench_solve.py", ("--sizes", "125,500,2000")),
-    "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000", "--scale", "2000,5000,20000",
+    "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000", "--scale", "1000,2000,5000,20000",
                                                "--stage-days", "100")),
     "diagnosis_confusion": ("scripts/diagnosis_confusion.py", ()),
     "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
