@@ -25,8 +25,14 @@ Each bar compares the EAFM with the AFM, with the paper, or with the simulator's
 ``vsse_vs_oracle``
     EAFM VSSE <= 1.5 x the oracle's at every target (when the oracle ran).
 ``absolute_pe``
-    EAFM PE below the AFM's at >= 90 % of the absolute points, and the paper's two-sample
-    t-test p < 0.01.
+    The EAFM's prediction better than the AFM's at >= 90 % of the absolute points with a test
+    p < 0.01. On a simulated stage it is judged against the truth: the error of each model's
+    mean prediction from the simulator's noise-free mean, with the paired t-test (both models
+    predict the same moves). Judged on the measured PE (|reading - prediction|) that bar can
+    fail for a perfect model: where the move's scatter is larger than the AFM's bias, the
+    simulator's own true mean need not have the smaller PE (the detail says at how many points
+    it has). Without a truth (hardware): EAFM PE below the AFM's at >= 90 % of
+    the points and the paper's two-sample t-test p < 0.01.
 ``coverage``
     The measured coverage of the EAFM's ±2σ band on the absolute experiment is consistent
     with [0.90, 0.98]: inside it, or outside by no more than its binomial sampling error allows
@@ -128,6 +134,31 @@ def coverage_p(fraction: float, n: int) -> float:
     return 1.0
 
 
+def _absolute(ab: dict) -> dict:
+    """The ``absolute_pe`` bar: against the truth on a simulated stage, else on the measured PE."""
+    n = ab["points"]
+    measured = (f"EAFM PE below AFM at {ab['eafm_below_afm_points']}/{n} points, "
+                f"t-test p = {_p(ab.get('p_value'))}")
+    truth = ab.get("mean_error_vs_truth_um")
+    if truth is None:
+        p = ab.get("p_value")
+        share = ab["eafm_below_afm_points"] / n
+        return {"passed": bool(share >= PE_SHARE and p is not None and p < PE_P),
+                "detail": f"{measured} (>= {PE_SHARE:.0%}, < {PE_P:g})"}
+    k = truth["eafm_below_afm_points"]
+    p = (ab["tests"].get("paired_t_mean_error_vs_truth") or {}).get("p_value")
+    perfect = truth.get("truth_pe_below_afm_points")
+    if perfect is not None:
+        measured += f"; the true mean's own PE below the AFM's at {perfect}/{n}"
+    return {"passed": bool(k / n >= PE_SHARE and p is not None and p < PE_P),
+            "detail": f"EAFM mean prediction nearer the true mean than the AFM's at {k}/{n} points "
+                      f"(>= {PE_SHARE:.0%}), paired t-test p = {_p(p)} (< {PE_P:g}); measured: {measured}"}
+
+
+def _p(p: float | None) -> str:
+    return "undefined" if p is None else f"{p:.2g}"
+
+
 def _coverage(ab: dict) -> dict:
     frac = float(ab["fraction_within_2sigma"])
     n = int(ab["points"]) * int(ab.get("trials", 1))
@@ -171,10 +202,6 @@ def evaluate_bars(results: dict) -> dict[str, dict]:
                                      "detail": f"EAFM/oracle VSSE {np.round(r_o, 2).tolist()} (<= {ORACLE_RATIO:g})"}
     ab = results.get("absolute")
     if ab is not None:
-        share = ab["eafm_below_afm_points"] / ab["points"]
-        p = ab.get("p_value")
-        out["absolute_pe"] = {"passed": bool(share >= PE_SHARE and p is not None and p < PE_P),
-                              "detail": f"EAFM PE below AFM at {ab['eafm_below_afm_points']}/{ab['points']} points "
-                                        f"(>= {PE_SHARE:.0%}), t-test p = {p if p is None else f'{p:.2g}'} (< {PE_P:g})"}
+        out["absolute_pe"] = _absolute(ab)
         out["coverage"] = _coverage(ab)
     return {k: out[k] for k in BARS if k in out}

@@ -148,8 +148,11 @@ def absolute_stats(ab: dict) -> dict:
         tm = ab["true_mean_um"]
         err_afm = np.abs(tm - ab["afm_um"][None, :]).mean(axis=0)
         err_eafm = np.abs(tm - ab["eafm_mean_um"]).mean(axis=0)
+        # the PE a perfect model would have (the true mean's): how much of the measured PE is scatter
+        pe_truth = np.abs(meas - tm).mean(axis=0)
         out["mean_error_vs_truth_um"] = {"afm": err_afm, "eafm": err_eafm,
-                                         "eafm_below_afm_points": int(np.sum(err_eafm < err_afm))}
+                                         "eafm_below_afm_points": int(np.sum(err_eafm < err_afm)),
+                                         "truth_pe_below_afm_points": int(np.sum(pe_truth < pe_afm))}
         out["true_std_um"] = ab["true_std_um"]
         # coverage expected under the truth: P(|t - mean| <= 2 std) for t ~ N(true mean, true std^2),
         # free of the sampling noise of a few dozen measurements (binomial sd ~3 % at 60)

@@ -127,3 +127,24 @@ def test_coverage_without_the_truth_uses_the_measured_fraction():
     assert evaluate_bars(res)["coverage"]["passed"]  # 0.90 measured
     res["absolute"]["fraction_within_2sigma"] = 0.7  # 21/30: P(X <= 21 | 30, 0.9) < 0.005
     assert not evaluate_bars(res)["coverage"]["passed"]
+
+
+def test_absolute_bar_on_a_simulated_stage_is_judged_against_the_truth():
+    """With the simulator's truth the absolute bar reads the models' mean errors from the true
+    mean (paired t-test), not the measured PE: where the moves scatter more than the AFM's bias,
+    even a perfect model's PE is below the AFM's at only about half of the points, so the
+    measured-PE share (here 15/30, p = 0.75) must not decide it."""
+    res = copy.deepcopy(GOOD)
+    res["absolute"].update(eafm_below_afm_points=15, p_value=0.75,
+                           mean_error_vs_truth_um={"eafm_below_afm_points": 28},
+                           tests={"paired_t_mean_error_vs_truth": {"p_value": 1e-6}})
+    bar = evaluate_bars(res)["absolute_pe"]
+    assert bar["passed"] and "nearer the true mean than the AFM's at 28/30" in bar["detail"]
+    assert "measured: EAFM PE below AFM at 15/30 points, t-test p = 0.75" in bar["detail"]
+    res["absolute"]["mean_error_vs_truth_um"]["eafm_below_afm_points"] = 26  # 87 % < 90 %
+    assert not evaluate_bars(res)["absolute_pe"]["passed"]
+    res["absolute"]["mean_error_vs_truth_um"]["eafm_below_afm_points"] = 30
+    res["absolute"]["tests"]["paired_t_mean_error_vs_truth"]["p_value"] = 0.02
+    assert not evaluate_bars(res)["absolute_pe"]["passed"]
+    res["absolute"]["tests"]["paired_t_mean_error_vs_truth"] = None  # undefined test
+    assert not evaluate_bars(res)["absolute_pe"]["passed"]
