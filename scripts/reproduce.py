@@ -15,7 +15,7 @@ Sections (``--only`` picks some; default: all, in this order):
     (``docs/generated/main_job.md`` and its PNGs).
 ``paper_scale``
     ``microctl experiment configs/experiments/paper_scale.yaml --out runs/paper_scale``, and
-    the same with ``--seed-offset`` 10000 (``docs/generated/paper_scale.md``):
+    the same with ``--seed-offset`` 10000 ... 90000 (``docs/generated/paper_scale.md``):
     the paper-scale rig, its Table II and, per seed offset, whether its AFM errors keep the
     paper's size and grow with the target.
 ``bench_rigs``

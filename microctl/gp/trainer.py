@@ -135,9 +135,10 @@ class VHGPR:
         ignores is out of reach from f's lengthscales (there, the lengthscale starts at the upper
         bound and the gradient vanishes): on the 3-D synthetic of ``scripts/bench_vhgpr.py``
         (``planted3d``) the extra run finds the heteroscedastic optimum ``"f"`` misses at n = 2000,
-        for one more run's time (docs/generated/bench_vhgpr.md, the scale rows). The stage's residual model (:mod:`microctl.models.training`) sets it
-        explicitly: ``"f"`` for the exact form, where its noise model's parametric prior mean
-        carries the physical inputs, ``"both"`` for the sparse form's hyperparameters.
+        for one more run's time (docs/generated/bench_vhgpr.md, the scale rows). The stage's
+        residual model (:mod:`microctl.models.training`) sets it explicitly: ``"f"`` for the exact
+        form, where its noise model's parametric prior mean carries the physical inputs,
+        ``"both"`` for the sparse form's hyperparameters.
     warm_start : FittedVHGPR, optional
         A model fitted to the same kind of data whose hyperparameters start the fit instead of
         the homoscedastic GP: one run (``n_restarts`` and ``g_start`` are not used), f's and g's
@@ -163,7 +164,7 @@ class VHGPR:
         se: str = "on",
         propagate_noise_parameter_uncertainty: bool = False,
         g_start: str = "both",
-        warm_start: Any = None,
+        warm_start: FittedVHGPR | None = None,
     ) -> None:
         if int(n_restarts) != n_restarts or n_restarts < 1:
             raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
