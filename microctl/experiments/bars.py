@@ -23,7 +23,12 @@ Each bar compares the EAFM with the AFM, with the paper, or with the simulator's
     chance about once in 20 targets even for an unbiased controller: the bias is measured
     against the simulator's noise-free mean instead.
 ``vsse_vs_oracle``
-    EAFM VSSE <= 1.5 x the oracle's at every target (when the oracle ran).
+    EAFM VSSE <= 1.5 x the oracle's at every target (when the oracle ran). On a simulated stage
+    the VSSE expected under the truth (the mean over trials of the true variance at each
+    controller's commands, ``expected_vsse_um2``) is compared: with 10 trials the ratio of two
+    sample variances of equal truth falls outside [0.67, 1.5] often (F(9, 9)), and on a
+    heavy-tailed scatter a lucky sample can hide a pose far noisier than the oracle's (the
+    paper-scale page shows both ratios); the measured ratio is in the detail.
 ``absolute_pe``
     The EAFM's prediction better than the AFM's at >= 90 % of the absolute points with a test
     p < 0.01. On a simulated stage it is judged against the truth: the error of each model's
@@ -134,6 +139,18 @@ def coverage_p(fraction: float, n: int) -> float:
     return 1.0
 
 
+def _vs_oracle(e: dict, o: dict, sample_ratio: np.ndarray) -> dict:
+    """The ``vsse_vs_oracle`` bar: on the expected VSSE under the truth when both runs carry it,
+    else on the measured VSSE."""
+    measured = f"measured EAFM/oracle VSSE {np.round(sample_ratio, 2).tolist()}"
+    if "expected_vsse_um2" in e and "expected_vsse_um2" in o:
+        r = _arr(e["expected_vsse_um2"]) / np.maximum(_arr(o["expected_vsse_um2"]), 1e-12)
+        return {"passed": bool(np.all(r <= ORACLE_RATIO)),
+                "detail": f"EAFM/oracle VSSE expected under the truth {np.round(r, 2).tolist()} "
+                          f"(<= {ORACLE_RATIO:g}); {measured}"}
+    return {"passed": bool(np.all(sample_ratio <= ORACLE_RATIO)), "detail": f"{measured} (<= {ORACLE_RATIO:g})"}
+
+
 def _absolute(ab: dict) -> dict:
     """The ``absolute_pe`` bar: against the truth on a simulated stage, else on the measured PE."""
     n = ab["points"]
@@ -197,9 +214,7 @@ def evaluate_bars(results: dict) -> dict[str, dict]:
             out["eafm_bias"] = {"passed": bool(np.all(bias < BIAS_UM)),
                                 "detail": f"|mean(true mean - target)| {np.round(bias, 4).tolist()} µm (< {BIAS_UM:g})"}
         if "oracle" in c:
-            r_o = ratios["vsse_eafm_over_oracle"]
-            out["vsse_vs_oracle"] = {"passed": bool(np.all(r_o <= ORACLE_RATIO)),
-                                     "detail": f"EAFM/oracle VSSE {np.round(r_o, 2).tolist()} (<= {ORACLE_RATIO:g})"}
+            out["vsse_vs_oracle"] = _vs_oracle(e, c["oracle"], ratios["vsse_eafm_over_oracle"])
     ab = results.get("absolute")
     if ab is not None:
         out["absolute_pe"] = _absolute(ab)

@@ -148,3 +148,28 @@ def test_absolute_bar_on_a_simulated_stage_is_judged_against_the_truth():
     assert not evaluate_bars(res)["absolute_pe"]["passed"]
     res["absolute"]["tests"]["paired_t_mean_error_vs_truth"] = None  # undefined test
     assert not evaluate_bars(res)["absolute_pe"]["passed"]
+
+
+def test_oracle_bar_on_a_simulated_stage_reads_the_expected_vsse():
+    """With the truth's expected VSSE in both runs the oracle bar is judged on it, not on the
+    10-trial sample: a sample ratio of 1.6 over equal truth passes, a sample ratio of 0.6 over a
+    pose 40x noisier in truth fails. Independent check: the F(9, 9) distribution puts a sample
+    ratio of equal-variance normals above 1.5 with probability ~0.28 (computed here by Monte
+    Carlo with a fixed seed), so a sample bar fails a controller equal to the oracle often."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    a, b = rng.standard_normal((2, 20000, 10))
+    share = float(np.mean(a.var(axis=1, ddof=1) / b.var(axis=1, ddof=1) > 1.5))
+    assert 0.25 < share < 0.31
+    res = copy.deepcopy(GOOD)
+    c = res["incremental"]["controllers"]
+    c["eafm"]["vsse_um2"] = [0.0048, 0.003, 0.004, 0.002]  # 1.6x the oracle's sample at 7 µm
+    c["eafm"]["expected_vsse_um2"] = [0.003, 0.003, 0.004, 0.002]
+    c["oracle"]["expected_vsse_um2"] = [0.003, 0.003, 0.004, 0.002]
+    bar = evaluate_bars(res)["vsse_vs_oracle"]
+    assert bar["passed"] and "expected under the truth [1.0, 1.0, 1.0, 1.0]" in bar["detail"]
+    assert "measured EAFM/oracle VSSE [1.6, 1.0, 1.0, 1.0]" in bar["detail"]
+    c["eafm"]["vsse_um2"] = [0.003, 0.003, 0.004, 0.0012]  # a quiet sample ...
+    c["eafm"]["expected_vsse_um2"] = [0.003, 0.003, 0.004, 0.08]  # ... of a pose 40x noisier
+    assert not evaluate_bars(res)["vsse_vs_oracle"]["passed"]
