@@ -41,7 +41,7 @@ from microctl.control.base import BaseController, unreachable
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
 from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
-from microctl.control.objectives import NoiseVariance, Objective, SmallestMotion
+from microctl.control.objectives import NoiseVariance, Objective, PerMoveObjective, SmallestMotion
 from microctl.control.redundant import RedundantSet, grid_local_minima
 from microctl.control.result import Controller, ControlResult, NoiseComparison
 from microctl.control.settings import ControllerSettings
@@ -81,6 +81,11 @@ class EAFMController(BaseController):
             self.name = name
         self.eafm = eafm
         self.objective = objective
+        # A per-move objective is a monotone function of r (eq. 4: 1 - exp(-r)): the same argmin
+        # is found by minimising r itself, which does not saturate where r is many µm² (there
+        # 1 - exp(-r) is 1 to machine precision at every pose, its gradient ~exp(-r), and the
+        # solver cannot tell a pose 40x noisier from the quietest one: the paper-scale rig)
+        self._per_move = isinstance(objective, PerMoveObjective)
         self.surface = EAFMSurface(eafm, self.settings, self.name)
         self.rset = self.surface.rset
         self._solver: ca.Function | None = None
@@ -88,6 +93,9 @@ class EAFMController(BaseController):
         self._build()
 
     def _objective_np(self, s: np.ndarray, U: np.ndarray, seeding: bool = False) -> np.ndarray:
+        """What the solver minimises at the rows of U: r for a per-move objective, else the objective."""
+        if self._per_move:
+            return self.objective.r_np(self.eafm, s, U, seeding=seeding)
         return self.objective.evaluate(self.eafm, s, U, seeding=seeding)
 
     # ---- NLP -------------------------------------------------------------------------
@@ -99,7 +107,7 @@ class EAFMController(BaseController):
         td = ca.MX.sym("t_d")
         jref = ca.MX.sym("J_ref")
         e = self.eafm.expressions(s, u, self.objective.needs)
-        J = self.objective.mx(s, u, e, afm.K)
+        J = (self.objective.r_mx if self._per_move else self.objective.mx)(s, u, e, afm.K)
         g = ca.vertcat(e["t_mean"] - td, ca.mtimes(ca.DM(afm.K), u))  # eq. 4 constraint; lo <= K u <= hi
         self._nlp = {"x": u, "p": ca.vertcat(td, s, jref), "f": J / jref, "g": g}
         self._fast = None
@@ -262,6 +270,8 @@ class EAFMController(BaseController):
                 t0: float, objective: float | None = None) -> ControlResult:
         if objective is None:
             objective = float(self._objective_np(s, u[None, :])[0])
+        if self._per_move:  # report the objective itself (eq. 4), from the r that was minimised
+            objective = float(self.objective.of_r(np.array([objective]))[0])
         return self.surface.result(self.name, s, target, u, objective, status, success, self._last_attempts, t0)
 
     def solve_sequence(self, targets: list[float], states: list[np.ndarray] | None = None) -> list[ControlResult]:

@@ -77,6 +77,10 @@ class PerMoveObjective(Objective, Protocol):
         """r of a move to each pose U[j] from each state S[i], shape (m1, m2) (row i = ``r_np`` from S[i])."""
         ...
 
+    def of_r(self, r: np.ndarray) -> np.ndarray:
+        """The objective's value for r (the monotone function; elementwise)."""
+        ...
+
 
 @dataclass(frozen=True)
 class NoiseVariance:
@@ -157,8 +161,12 @@ class NoiseVariance:
                 r = r + np.vstack([eafm.predict(s, U).f_var for s in S])
         return r
 
+    def of_r(self, r: np.ndarray) -> np.ndarray:
+        """eq. 4's value ``1 - exp(-r)``, elementwise."""
+        return -np.expm1(-np.asarray(r, dtype=float))
+
     def evaluate(self, eafm: EAFM, s: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
-        return -np.expm1(-self.r_np(eafm, s, U, seeding=seeding))
+        return self.of_r(self.r_np(eafm, s, U, seeding=seeding))
 
 
 @dataclass(frozen=True)

@@ -357,3 +357,32 @@ def test_result_states_the_bias_uncertainty_beside_the_scatter(afm, eafm, opt):
     assert res.bias_std_um == pytest.approx(np.sqrt(f_var), rel=1e-9)
     assert res.predicted_std_um**2 == pytest.approx(res.bias_std_um**2 + res.noise_std_um**2, rel=1e-9)
     assert res.to_dict()["bias_std_um"] == res.bias_std_um
+
+
+def test_a_saturated_objective_still_finds_the_quiet_pose(afm, eafm, opt):
+    """eq. 4's 1 - exp(-r) is 1 to machine precision at every pose once r exceeds ~37 (µm², the
+    paper-scale rig's noise variances are tens), so a solver on it cannot tell the quietest pose
+    from one far noisier. The controller minimises r itself (the same argmin). Planted: the
+    quiet well of ``planted_model`` with r multiplied by 1e5 (r ~ 40 in the well, 4000 outside,
+    so 1 - exp(-r) == 1.0 everywhere in double): the controller must land where it lands on the
+    unscaled r (same pose to 0.05 µm of actuator command) and report the objective's value."""
+    from dataclasses import dataclass
+
+    from microctl.control.controller import EAFMController
+    from microctl.control.objectives import NoiseVariance
+
+    @dataclass(frozen=True)
+    class Scaled(NoiseVariance):
+        def r_mx(self, s, u, e, K):
+            return 1e5 * super().r_mx(s, u, e, K)
+
+        def r_np(self, eafm, s, U, *, seeding=False):
+            return 1e5 * super().r_np(eafm, s, U, seeding=seeding)
+
+    scaled = EAFMController(eafm, Scaled(), opt.settings, name="scaled")
+    for target in (6.0, 14.0):
+        a, b = opt.solve(target), scaled.solve(target)
+        assert np.all(scaled.objective.evaluate(eafm, afm.zero_state(), b.u[None, :]) == 1.0)
+        assert np.max(np.abs(a.q - b.q)) < 0.05, (a.q, b.q)
+        assert b.predicted_std_um == pytest.approx(a.predicted_std_um, rel=0.01)
+        assert b.objective == 1.0 and 0.0 < a.objective < 1.0
