@@ -238,7 +238,7 @@ def paper_scale_bars(runs: list[tuple[int, dict]]) -> list[str]:
     target (``vsse_not_worse``) and <= 1.5x the oracle's (``vsse_vs_oracle``); the absolute
     experiment (``absolute_pe``: against the truth), with the measured PE's counts beside it;
     and on how many offsets each holds."""
-    from microctl.experiments.bars import ORACLE_RATIO
+    from microctl.experiments.bars import ORACLE_RATIO, expected_oracle_ratio, incremental_ratios
 
     L = ["<!-- table: paper_scale_bars -->",
          "| seed offset | EAFM VSSE not worse than the AFM's | EAFM / oracle VSSE expected under the truth | "
@@ -251,10 +251,9 @@ def paper_scale_bars(runs: list[tuple[int, dict]]) -> list[str]:
         bars, ab = res.get("bars", {}), res["absolute"]
         worse = bars.get("vsse_not_worse", {}).get("passed", False)
         c = res["incremental"]["controllers"]
-        ratio = ([e / max(o, 1e-12) for e, o in zip(c["eafm"]["vsse_um2"], c["oracle"]["vsse_um2"])]
-                 if "oracle" in c else [])
-        expected = ([e / max(o, 1e-12) for e, o in zip(c["eafm"]["expected_vsse_um2"], c["oracle"]["expected_vsse_um2"])]
-                    if "oracle" in c and "expected_vsse_um2" in c["oracle"] else [])
+        ratio = incremental_ratios(c).get("vsse_eafm_over_oracle", [])
+        expected = expected_oracle_ratio(c)
+        expected = [] if expected is None else expected
         near = bars.get("vsse_vs_oracle", {}).get("passed", False)
         p = (ab["tests"].get("paired_t") or {}).get("p_value")
         tr = ab.get("mean_error_vs_truth_um", {})

@@ -47,8 +47,8 @@ class FastSQP:
 
     Parameters
     ----------
-    fun : casadi.Function or None
-        From :func:`build_fast_function` (None: only :meth:`qp` is used).
+    fun : casadi.Function
+        From :func:`build_fast_function`.
     K : ndarray, shape (n_q, n_p)
     lo, hi : ndarray, shape (n_q,)
     max_iter : int
@@ -62,8 +62,8 @@ class FastSQP:
     def __init__(self, fun: ca.Function, K: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, max_iter: int = 30,
                  constraint_tol: float = 1e-8, kkt_tol: float = 1e-7):
         # the five outputs as one dense vector: one conversion to NumPy per evaluation, not five
-        self._packed = None if fun is None else ca.Function(
-            f"{fun.name()}_packed", fun.mx_in(), [ca.vertcat(*[ca.vec(o) for o in fun.call(fun.mx_in())])])
+        self._packed = ca.Function(f"{fun.name()}_packed", fun.mx_in(),
+                                   [ca.vertcat(*[ca.vec(o) for o in fun.call(fun.mx_in())])])
         self.K = np.asarray(K, dtype=float)
         self.lo, self.hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
         self.max_iter = max_iter
@@ -78,12 +78,6 @@ class FastSQP:
         v = self._packed(u, s, lam).full().ravel()  # [J; dJ/du; t; dt/du; vec(H)] (H column-major)
         return (float(v[0]), v[1:1 + n], float(v[1 + n]), v[2 + n:2 + 2 * n],
                 v[2 + 2 * n:].reshape(n, n, order="F"))
-
-    # ------------------------------------------------------------------ the QP step
-    def qp(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
-           ) -> tuple[np.ndarray, float, np.ndarray] | None:
-        """The SQP's quadratic subproblem: :meth:`ActiveSetQP.solve`."""
-        return self._qp.solve(B, g, a, c, slack)
 
     # ------------------------------------------------------------------ the solve
     def solve(self, u0: np.ndarray, s: np.ndarray, target: float, jref: float | None = None
@@ -115,7 +109,7 @@ class FastSQP:
         for it in range(self.max_iter):
             info["iter"] = it + 1
             g, B = gJ / jref, _reduced_convex(H / jref, gt)
-            step = self.qp(B, g, gt, t - target, self.b - self.A @ u)
+            step = self._qp.solve(B, g, gt, t - target, self.b - self.A @ u)
             if step is None:
                 info["status"] = "fast: infeasible step"
                 return u, info
@@ -185,7 +179,7 @@ class ActiveSetQP:
         self.usable = len(sets) <= 2000
 
     def solve(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
-           ) -> tuple[np.ndarray, float, np.ndarray] | None:
+              ) -> tuple[np.ndarray, float, np.ndarray] | None:
         """``min 1/2 d'Bd + g'd s.t. a'd = -c, A d >= slack`` (B positive definite) by its active sets.
 
         A strictly convex QP has one KKT point, its minimum: the active sets are tried by size

@@ -7,7 +7,7 @@ import pytest
 from test_controller import ROOT, _check_valid, _states, planted_model
 
 from microctl.control.controller import ControllerSettings, OptimalController
-from microctl.control.fastpath import FastSQP, _reduced_convex
+from microctl.control.fastpath import ActiveSetQP, _reduced_convex
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
 from microctl.stage.config import load_stage_config
@@ -38,12 +38,12 @@ def test_qp_step_satisfies_its_kkt_conditions():
     for _ in range(300):
         u = rng.uniform(-3, 3, 3)
         q = K @ u  # ranges a short way either side of u, so steps press against them
-        sqp = FastSQP(None, K, q - rng.uniform(0, 0.5, 4), q + rng.uniform(0, 0.5, 4))
+        sqp = ActiveSetQP(K, q - rng.uniform(0, 0.5, 4), q + rng.uniform(0, 0.5, 4))
         L = rng.normal(size=(3, 3))
         B = L @ L.T + 1e-3 * np.eye(3)
         g, a = rng.normal(size=3) * 10, rng.normal(size=3)
         slack = sqp.b - sqp.A @ u
-        out = sqp.qp(B, g, a, 0.0, slack)
+        out = sqp.solve(B, g, a, 0.0, slack)
         assert out is not None  # d = 0 is feasible, so a minimum exists
         d, lam, mu = out
         active += np.any(mu > 0)
