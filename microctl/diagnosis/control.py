@@ -27,10 +27,16 @@ from microctl.models.training import (
 )
 from microctl.stage.config import StageConfig
 
-__all__ = ["TARGET_FRACTIONS", "control_comparison"]
+__all__ = ["TARGET_FRACTIONS", "COMPARISON_SETTINGS", "control_comparison"]
 
 #: Targets as fractions of the largest tool pose both EAFMs reach from the zero state.
 TARGET_FRACTIONS = (0.15, 0.35, 0.55)
+
+#: Residual-model settings of the comparison's two EAFMs: the package's defaults with one optimiser
+#: run per variant and at most 150 L-BFGS-B iterations, so that the comparison (two fits on the
+#: diagnosed log) keeps ``diagnose`` on a 300-move log well within a minute; the models a user
+#: controls the stage with come from ``microctl train`` with the full settings.
+COMPARISON_SETTINGS = {"restarts": 1, "max_iter": 150}
 
 
 def control_comparison(config: StageConfig, extended: StageConfig, data: DiagnosisData, *, seed: int = 0) -> dict:
@@ -61,7 +67,7 @@ def control_comparison(config: StageConfig, extended: StageConfig, data: Diagnos
     ctrls = {}
     for label, cfg in (("plain", config), ("extended", extended)):
         afm = AnalyticForwardModel(cfg.stage)
-        model = train_residual_model(residual_dataset(data, afm), afm, ResidualModelSettings(seed=seed))
+        model = train_residual_model(residual_dataset(data, afm), afm, ResidualModelSettings(seed=seed, **COMPARISON_SETTINGS))
         ctrls[label] = OptimalController(EAFM(afm, model), settings)
     zero = ctrls["plain"].afm.zero_state()
     # targets both models reach from the zero state, as fractions of the common positive range
