@@ -7,7 +7,8 @@ move, in order:
 1. q = K u (eq. 12, CAD geometry), refused if out of range (nothing changes);
 2. backlash direction per actuator by the one rule (``model.next_direction``: the sign of
    Δq_i, kept when the actuator is held still; the zero state counts as approached "up");
-3. actual positions q_act = model.actual_positions(q, direction) + e_driver + e_friction with
+3. hysteresis play states (the loop's memory) step to q (``model.next_play``);
+   actual positions q_act = model.actual_positions(q, direction, play) + e_driver + e_friction with
    e_driver ~ N(0, driver_accuracy²) per actuator and e_friction,i ~ N(0, (std_i |Δq_i|)²);
 4. contact equilibrium p (``model.pose``), the clock advances by move_time_s;
 5. reading = model.reading(p, time) + N(0, gauge_noise²) (the sensor of the effects).
@@ -106,6 +107,8 @@ class SimulatedStage(StageBackend):
         Its physics arrays (``truth.model``).
     direction : ndarray, shape (n_q,)
         Direction each actuator last moved (backlash state).
+    play : ndarray, shape (n_q, N_PLAY) or None
+        Play states of the hysteresis (:mod:`microctl.stage.hysteresis`; None without it).
     time_s : float
         Simulated clock, s.
     """
@@ -124,6 +127,7 @@ class SimulatedStage(StageBackend):
         n = config.stage.n_act
         self._q_cmd = np.zeros(n)
         self.direction = np.full(n, ZERO_STATE_DIRECTION)
+        self.play = self.truth.zero_play()
         self._p = self.model.p_zero.copy()
         self.time_s = 0.0
         self.moves = 0
@@ -139,7 +143,9 @@ class SimulatedStage(StageBackend):
         self.direction = self.truth.next_direction(dq, self.direction)
         z_driver = self._rng_act.standard_normal(q.size)
         z_friction = self._rng_act.standard_normal(q.size)
-        q_act = self.truth.actual_positions(q, self.direction)[0]
+        play = self.truth.next_play(q, self.play)
+        q_act = self.truth.actual_positions(q, self.direction, play)[0]
+        self.play = None if play is None else play[0]
         q_act = q_act + self.settings.driver_accuracy_um * z_driver
         q_act = q_act + self.model.friction_std_per_um * np.abs(dq) * z_friction
         p, _ = self.truth.pose(q_act[None, :])
@@ -166,10 +172,11 @@ class SimulatedStage(StageBackend):
     # ---- oracle --------------------------------------------------------------------
     def _oracle(self, s: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ExtendedPrediction]:
         """Δq and the noise-free prediction of the next move from state s (a held actuator keeps
-        the stage's current backlash direction), at the time it would settle."""
+        the stage's current backlash direction; the hysteresis starts from its current play
+        states), at the time it would settle."""
         s = np.asarray(s, dtype=float).reshape(-1)
         q = np.atleast_2d(np.asarray(u, dtype=float)) @ self.K.T
-        pred = self.truth.predict_q(q, q_prev=s[1:], last_direction=self.direction,
+        pred = self.truth.predict_q(q, q_prev=s[1:], last_direction=self.direction, last_play=self.play,
                                     time_s=self.time_s + self.settings.move_time_s)
         return q - s[1:], pred
 
@@ -198,8 +205,9 @@ class SimulatedStage(StageBackend):
         mean = np.array(pred.t, dtype=float)
         var = self.truth.variance(pred, dq, actuator_std_um=self.settings.driver_accuracy_um,
                                   gauge_std_um=self.settings.gauge_noise_std_um)
-        # the noise-free actual positions of the moves (backlash direction as in _oracle)
-        q_act = self.truth.actual_positions(pred.q, self.truth.next_direction(dq, self.direction))
+        # the noise-free actual positions of the moves (backlash direction and play as in _oracle)
+        q_act = self.truth.actual_positions(pred.q, self.truth.next_direction(dq, self.direction),
+                                            self.truth.next_play(pred.q, self.play))
         exact = self._first_order_exact(pred, dq, q_act)
         sensor = self.model.sensor
         if not sensor.is_linear:

@@ -161,7 +161,7 @@ def with_nuisance(stage: Stage, values: dict[str, float]) -> Stage:
 
 def _prediction(stage: Stage, effects: Effects, data: DiagnosisData):
     """The extended model's prediction of the moves in ``data`` (readings ``.t``, contacts ``.active``)."""
-    return ExtendedForwardModel(stage, effects).predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    return ExtendedForwardModel(stage, effects).predict_data(data)
 
 
 def predict(stage: Stage, effects: Effects, data: DiagnosisData) -> np.ndarray:

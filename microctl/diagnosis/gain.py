@@ -84,10 +84,10 @@ def _fold_predictions(stage, afm, train, test, specs, theta0, nuisance0, frictio
     f = fit_mean(stage, base, specs, train, theta0=theta0, nuisance0=nuisance0)  # also the gauge zero
     ext = f.model()
     ext_tr = f.pred
-    pe = ext.predict_q(test.q, direction=test.direction, time_s=test.time_s)
+    pe = ext.predict_data(test)
     ext_te = pe.t + f.zero_um
     # extended noise model: the accepted noise causes refitted on the training residual
-    J_tr = ext.predict_q(train.q, direction=train.direction, time_s=train.time_s).sensitivity
+    J_tr = ext.predict_data(train).sensitivity
     nf = fit_noise(train.t - ext_tr, J_tr, train.dq, tuple(friction))
     var_ext = nf.variance(pe.sensitivity, test.dq)
     var_afm = float(np.mean((train.t - t_afm_tr) ** 2))

@@ -93,7 +93,7 @@ class Diagnosis:
 
 
 def _sensitivity(fit, data: DiagnosisData) -> np.ndarray:
-    return fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s).sensitivity
+    return fit.model().predict_data(data).sensitivity
 
 
 #: Most rounds of "name causes on the rows kept, test every row" before the outlier set is taken as it is.
@@ -176,7 +176,7 @@ def _test_rows(named: Named, data: DiagnosisData, keep: np.ndarray, a_each: floa
 
     Returns the test and the flexible term's values (zero when no structure is left)."""
     fit = named.sel.final
-    pred = fit.model().predict_q(data.q, direction=data.direction, time_s=data.time_s)
+    pred = fit.model().predict_data(data)
     r = data.t - (pred.t + fit.zero_um)
     smooth, var_f = np.zeros(data.n), np.zeros(data.n)
     if named.left.significant:

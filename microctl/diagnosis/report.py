@@ -22,6 +22,10 @@ SEPARATING_MEASUREMENT = {
         "a second tool point (a gain error tilts the platform, a scale error does not) or a pure z move"
     ),
     frozenset({"backlash", "drift"}): "a dwell: holding a pose, drift keeps moving the reading, backlash does not",
+    frozenset({"backlash", "hysteresis"}): (
+        "incremental moves with reversals of several lengths on the suspected actuator: a backlash switches "
+        "fully on any reversal, a hysteresis loop only part-way on reversals shorter than twice its range"
+    ),
     frozenset({"contact_loss", "actuator_gain"}): (
         "moves that load and unload the suspected ball (a kink only appears where it lifts off)"
     ),

@@ -123,7 +123,7 @@ def separating_design(stage, chosen: MeanFit, other: MeanFit, sigma_um: float, *
             d = _design_data(stage, design, DESIGN_MOVES, seed)
         except ConfigError:
             continue
-        t = chosen.model().predict_q(d.q, direction=d.direction, time_s=d.time_s).t
+        t = chosen.model().predict_data(d).t
         f = fit_mean(stage, stage.corrections, list(other.specs), d.with_t(t), theta0=theta0,
                      nuisance0=other.nuisance)
         per[design] = float(f.rss / (sigma_um**2 * d.n))

@@ -4,12 +4,14 @@ The AFM (:mod:`microctl.models.afm`, eq. 5-14) applies only the *static* correct
 ``stage.corrections`` in the rigid least-squares limit. :class:`ExtendedForwardModel`
 predicts the reading with *every* cause of the registry (:mod:`microctl.stage.causes`) —
 including backlash (needs the direction each actuator last moved, i.e. the state),
+hysteresis (needs the play states, the loop's memory: :mod:`microctl.stage.hysteresis`),
 contact loss (a ball lifting off: a kink) and drift (needs the time) — through the elastic
 contact equilibrium of :mod:`microctl.stage.physics`:
 
     q = K u                                  (eq. 12, CAD geometry: what the drivers get)
     direction = approach_direction(q − q_prev, last)   (one rule, physics module)
-    q_act = q − lag ⊙ direction              (backlash)
+    z = play(z_before, q)                    (hysteresis play states)
+    q_act = q − lag ⊙ direction + w ⊙ Σ_j (z_j − q)   (backlash, hysteresis)
     h = (n·d) ⊙ gain ⊙ q_act − gap           (ball heights)
     p = argmin E(p; h)                       (contact equilibrium, physics module)
     t = sensor.forward(d, time),  d = w_true·(p − p_zero)
@@ -30,6 +32,7 @@ from functools import cached_property
 
 import numpy as np
 
+from microctl.stage import hysteresis
 from microctl.stage.causes import Effects
 from microctl.stage.geometry import Stage
 from microctl.stage.kinematics import inverse_kinematics_matrix
@@ -122,9 +125,40 @@ class ExtendedForwardModel:
         (:func:`microctl.stage.physics.approach_direction`: a held actuator keeps ``last``)."""
         return approach_direction(dq, last)
 
-    def actual_positions(self, q: np.ndarray, direction: np.ndarray | float) -> np.ndarray:
-        """Noise-free actual actuator positions (backlash), shape (m, n_q)."""
-        return actual_positions(self.model, q, direction)
+    def actual_positions(self, q: np.ndarray, direction: np.ndarray | float,
+                         play: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free actual actuator positions (backlash, hysteresis), shape (m, n_q).
+
+        ``play`` (m, n_q, N_PLAY): the play states after the moves, needed with hysteresis
+        (:meth:`next_play`, :meth:`play_run`)."""
+        return actual_positions(self.model, q, direction, play)
+
+    @property
+    def has_hysteresis(self) -> bool:
+        """Whether the state must carry play states (some actuator has hysteresis)."""
+        return self.model.has_hysteresis
+
+    def zero_play(self) -> np.ndarray | None:
+        """Play states of the zero state, shape (n_q, N_PLAY), or None without hysteresis."""
+        return -np.array(self.model.play_r) if self.has_hysteresis else None
+
+    def next_play(self, q: np.ndarray, last_play: np.ndarray | None) -> np.ndarray | None:
+        """Play states after moves to commands q (m, n_q) or (n_q,), each from ``last_play``
+        ((n_q, N_PLAY), default the zero state's): shape (m, n_q, N_PLAY), or None without
+        hysteresis. Rows are alternative moves from one state (not a run)."""
+        if not self.has_hysteresis:
+            return None
+        z0 = self.zero_play() if last_play is None else np.asarray(last_play, dtype=float)
+        return hysteresis.play_step(z0, np.atleast_2d(np.asarray(q, dtype=float)), self.model.play_r)
+
+    def play_run(self, q: np.ndarray, q_prev: np.ndarray | None = None,
+                 last_play: np.ndarray | None = None) -> np.ndarray | None:
+        """Play states along a run of commands q (m, n_q) in execution order, each row fed its
+        q_prev first (:func:`microctl.stage.hysteresis.play_run`), from ``last_play`` (default
+        the zero state's): shape (m, n_q, N_PLAY), or None without hysteresis."""
+        if not self.has_hysteresis:
+            return None
+        return hysteresis.play_run(self.model.play_r, q, q_prev, last_play)
 
     def pose(self, q_actual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Contact equilibrium for actual actuator positions (m, n_q): pose (m, n_p), balls in contact (m, n_q)."""
@@ -143,6 +177,8 @@ class ExtendedForwardModel:
         direction: np.ndarray | None = None,
         last_direction: np.ndarray | float = ZERO_STATE_DIRECTION,
         time_s: np.ndarray | float | None = None,
+        play: np.ndarray | None = None,
+        last_play: np.ndarray | None = None,
     ) -> ExtendedPrediction:
         """Prediction for actuator commands.
 
@@ -162,6 +198,12 @@ class ExtendedForwardModel:
             Direction of approach before the move(s) (+1, "up", for the zero state).
         time_s : ndarray (m,) or float, optional
             Settling times; without them the drift term is left out (time 0).
+        play : ndarray, shape (m, n_q, N_PLAY), optional
+            Play states after each move (hysteresis); overrides the ones below.
+        last_play : ndarray, shape (n_q, N_PLAY), optional
+            Play states before the move(s) (default the zero state's). With a 2-D ``q_prev``
+            they run along the rows (:meth:`play_run`); otherwise each row is a move from them
+            (:meth:`next_play`). Ignored without hysteresis.
 
         Returns
         -------
@@ -176,7 +218,10 @@ class ExtendedForwardModel:
             d = approach_direction(q - np.asarray(q_prev, dtype=float)[None, :], last_direction)
         else:
             d = directions_from_steps(q - np.atleast_2d(np.asarray(q_prev, dtype=float)), last_direction)
-        p, active = self.pose(self.actual_positions(q, d))
+        if play is None and self.has_hysteresis:
+            play = (self.play_run(q, q_prev, last_play) if q_prev is not None and np.ndim(q_prev) == 2
+                    else self.next_play(q, last_play))
+        p, active = self.pose(self.actual_positions(q, d, play))
         t = self.reading(p, time_s)
         return ExtendedPrediction(t=t, q=q, p=p, active=active, model=self.model)
 
@@ -188,6 +233,7 @@ class ExtendedForwardModel:
         time_s: np.ndarray | float | None = None,
         direction: np.ndarray | None = None,
         last_direction: np.ndarray | float = ZERO_STATE_DIRECTION,
+        last_play: np.ndarray | None = None,
     ) -> np.ndarray:
         """Expected reading t(s, u[, time]).
 
@@ -201,6 +247,9 @@ class ExtendedForwardModel:
         last_direction : float or ndarray (n_q,) or (m, n_q)
             Direction each actuator last moved before state s (the state [t; q] does not hold
             it; +1 for the zero state). An actuator held still keeps it.
+        last_play : ndarray, shape (n_q, N_PLAY), optional
+            Play states before state s (hysteresis; default the zero state's). Each row is a
+            move from q_prev with these states (the move to q_prev fed first).
 
         Returns
         -------
@@ -213,7 +262,13 @@ class ExtendedForwardModel:
                                                                          q.shape)
             # each row is a separate move from its own state (not a run)
             direction = approach_direction(q - q_prev, last_direction)
-        return self.predict_q(q, direction=direction, time_s=time_s).t
+        play = None
+        if self.has_hysteresis:
+            z0 = self.zero_play() if last_play is None else np.asarray(last_play, dtype=float)
+            if s is not None:  # the state's q_prev, then q
+                z0 = hysteresis.play_step(z0, np.atleast_2d(np.asarray(s, dtype=float))[:, 1:], self.model.play_r)
+            play = hysteresis.play_step(z0, q, self.model.play_r)
+        return self.predict_q(q, direction=direction, time_s=time_s, play=play).t
 
     def variance(self, prediction: ExtendedPrediction, dq: np.ndarray, *, actuator_std_um: float,
                  gauge_std_um: float) -> np.ndarray:
@@ -222,6 +277,14 @@ class ExtendedForwardModel:
         return reading_variance(prediction.sensitivity, dq, self.model.friction_std_per_um, actuator_std_um,
                                 gauge_std_um)
 
+    def predict_data(self, data) -> ExtendedPrediction:
+        """Prediction for the moves of a :class:`~microctl.diagnosis.data.DiagnosisData`: its
+        directions and times; with hysteresis, the play states run along its rows in order, each
+        row fed its q_prev first (a row whose predecessor was left out of a subset still starts
+        from its true previous command; memory older than that move is lost there)."""
+        return self.predict_q(data.q, direction=data.direction, time_s=data.time_s,
+                              play=self.play_run(data.q, data.q_prev))
+
     def residual(self, data) -> np.ndarray:
         """Measured minus predicted reading for a :class:`~microctl.diagnosis.data.DiagnosisData`, (n,)."""
-        return data.t - self.predict_q(data.q, direction=data.direction, time_s=data.time_s).t
+        return data.t - self.predict_data(data).t

@@ -139,6 +139,11 @@ class StageParts:
         Backlash: how far each actuator ends short of its command in its last direction, µm.
     friction_std_per_um : ndarray, shape (n_q,)
         Stick-slip scatter per µm an actuator moves.
+    hysteresis_half_um : ndarray, shape (n_q,)
+        Half-width h_i of each actuator's major hysteresis loop, µm (0 without hysteresis).
+    hysteresis_range_um : ndarray, shape (n_q,)
+        Largest play threshold R_i of each actuator's hysteresis, µm
+        (:mod:`microctl.stage.hysteresis`).
     sensor : Sensor
         The gauge transfer (scale, quadratic term, drift).
     """
@@ -149,6 +154,8 @@ class StageParts:
     gap_um: np.ndarray
     lag_um: np.ndarray
     friction_std_per_um: np.ndarray
+    hysteresis_half_um: np.ndarray
+    hysteresis_range_um: np.ndarray
     sensor: Sensor = field(default_factory=Sensor)
 
 

@@ -4,8 +4,8 @@ A *cause* is a physical defect of the stage with a name, parameters (units, vali
 healthy value, the range a diagnosis searches) and a kind:
 
 - ``static`` — a mean cause the AFM graph can apply (geometry, actuator gain, gauge transfer);
-- ``dynamic`` — a mean cause that needs the state (backlash), the contact physics (contact
-  loss) or time (drift): the AFM graph leaves it to the GP, the extended model applies it;
+- ``dynamic`` — a mean cause that needs the state (backlash, hysteresis), the contact physics
+  (contact loss) or time (drift): the AFM graph leaves it to the GP, the extended model applies it;
 - ``noise`` — scatter (stick-slip friction), not a correction of the mean.
 
 Each cause is a frozen dataclass whose fields are the config entry (``ActuatorGain(actuator=3,
@@ -57,6 +57,8 @@ __all__ = [
     "SensorNonlinearity",
     "ContactLoss",
     "Backlash",
+    "Hysteresis",
+    "HYSTERESIS_RANGE_GRID_UM",
     "Drift",
     "ActuatorFriction",
     "MEAN_KINDS",
@@ -278,6 +280,53 @@ class Backlash(Cause):
         return cls(actuator, rng.uniform(0.1, 0.4))
 
 
+#: Largest play thresholds R (µm) a ``hysteresis`` fit starts from (the loop's width in command
+#: travel is poorly identified from a start far from it: a fit tries each and keeps the best).
+HYSTERESIS_RANGE_GRID_UM = (1.0, 3.0, 9.0)
+
+
+@register
+@dataclass(frozen=True)
+class Hysteresis(Cause):
+    """Rate-independent piezo hysteresis of actuator ``actuator``: a Prandtl-Ishlinskii sum of
+    play operators (:mod:`microctl.stage.hysteresis`) whose major loop has half-width
+    ``half_width_um`` and whose largest play threshold is ``range_um`` (planted: h ~ U(0.15, 0.4)
+    µm, R ~ U(2, 8) µm).
+
+    After a move longer than 2 R the actuator ends h short of its command in the direction it
+    moved, as with ``backlash`` of lag h (the limit R -> 0); after a shorter reversal it is
+    part-way round its loop, by an amount set by how far it went and by the moves before (the
+    loop's memory), which ``backlash`` cannot express. This cause extends the vocabulary of
+    ``shared/spec/diagnosis.md`` (documented in ``docs/diagnosis.md``).
+    """
+
+    actuator: int
+    half_width_um: float
+    range_um: float
+
+    name: ClassVar[str] = "hysteresis"
+    kind: ClassVar[str] = "dynamic"
+    per_actuator: ClassVar[bool] = True
+    params: ClassVar[tuple[Param, ...]] = (
+        Param("half_width_um", "µm", 0.05, "nonneg", 0.0, 2.0),
+        Param("range_um", "µm", 4.0, "positive", 0.5, 16.0),
+    )
+    meaning: ClassVar[str] = ("actuator i lags its command round a hysteresis loop of half-width half_width_um "
+                              "that closes over range_um of reversal")
+
+    def apply(self, parts: StageParts) -> None:
+        parts.hysteresis_half_um[self.actuator - 1] = self.half_width_um
+        parts.hysteresis_range_um[self.actuator - 1] = self.range_um
+
+    @classmethod
+    def start_grid(cls, stage):
+        return tuple((0.2, R) for R in HYSTERESIS_RANGE_GRID_UM)
+
+    @classmethod
+    def draw(cls, rng, actuator, *, compression_um):
+        return cls(actuator, rng.uniform(0.15, 0.4), rng.uniform(2.0, 8.0))
+
+
 @register
 @dataclass(frozen=True)
 class Drift(Cause):
@@ -417,6 +466,8 @@ def stage_parts(stage: StageLike, effects: Any | None = None, kinds: Sequence[st
         gap_um=np.zeros(n),
         lag_um=np.zeros(n),
         friction_std_per_um=np.zeros(n),
+        hysteresis_half_um=np.zeros(n),
+        hysteresis_range_um=np.zeros(n),
     )
     if effects is not None:
         for cause in effects.items(kinds):

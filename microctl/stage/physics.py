@@ -30,7 +30,10 @@ State-dependent causes: ``backlash`` makes actuator i end lag_i short of its com
 the direction it last moved. The direction of approach has one rule,
 :func:`approach_direction`: a step larger than :data:`STILL_TOL_UM` sets it, an actuator
 held still (within the tolerance) keeps its last direction, and the zero state counts as
-approached from below ("up"), so its actuator sits at −lag_i. ``actuator_friction`` and the
+approached from below ("up"), so its actuator sits at −lag_i. ``hysteresis`` adds the
+Prandtl-Ishlinskii offset of :mod:`microctl.stage.hysteresis`, which needs the play states
+(the loop's memory) beside the direction; its zero state is approached from below too
+(−h_i). ``actuator_friction`` and the
 driver accuracy are noise (see :func:`tool_sensitivity` and :func:`reading_variance`).
 
 With the default :class:`~microctl.stage.geometry.Physics` (k_c = 20 N/µm, preload 100 N,
@@ -48,6 +51,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 
 from microctl.errors import SolveError
+from microctl.stage import hysteresis
 from microctl.stage.causes import Effects, StageParts, stage_parts
 from microctl.stage.geometry import Stage
 from microctl.stage.kinematics import contact_map, hinge_jacobian, tool_vector
@@ -90,7 +94,7 @@ class ContactModel:
     w_true : ndarray, shape (n_p,)
         True tool map (eq. 13 with the tool offset).
     q_zero : ndarray, shape (n_c,)
-        Actual actuator positions at the zero state (−lag: approached "up").
+        Actual actuator positions at the zero state (−lag − h: approached "up").
     p_zero : ndarray, shape (n_p,)
         Noise-free equilibrium pose at the zero state (the gauge's zero); solved on first use,
         or together with a batch of moves by :func:`solve_with_zero`.
@@ -129,6 +133,25 @@ class ContactModel:
     def sensor(self) -> Sensor:
         """Gauge transfer (scale, quadratic coefficient, drift rate)."""
         return self.parts.sensor
+
+    @cached_property
+    def play_r(self) -> np.ndarray:
+        """Play thresholds of the hysteresis, µm, shape (n_c, N_PLAY) (read-only)."""
+        r = hysteresis.thresholds(self.parts.hysteresis_range_um)
+        r.setflags(write=False)
+        return r
+
+    @cached_property
+    def play_w(self) -> np.ndarray:
+        """Play weights of the hysteresis (0 where an actuator has none), shape (n_c,) (read-only)."""
+        w = hysteresis.weights(self.parts.hysteresis_half_um, self.parts.hysteresis_range_um)
+        w.setflags(write=False)
+        return w
+
+    @property
+    def has_hysteresis(self) -> bool:
+        """Whether some actuator has hysteresis (then the state carries play states)."""
+        return bool(np.any(self.play_w > 0))
 
     @cached_property
     def p_zero(self) -> np.ndarray:
@@ -173,7 +196,8 @@ def _cached_model(stage: Stage, effects: Effects) -> ContactModel:
         f_preload=k_h * p_free,
         k_c=float(ph.contact_stiffness_n_per_um),
         w_true=tool_vector(stage, parts),  # eq. 13 with the moved tool point
-        q_zero=-parts.lag_um * ZERO_STATE_DIRECTION,  # backlash at the zero state, approached "up"
+        # backlash and hysteresis at the zero state, approached "up" (play states z = -r: offset -h)
+        q_zero=-(parts.lag_um + parts.hysteresis_half_um) * ZERO_STATE_DIRECTION,
     )
     for arr in (model.A, model.nd, model.gain, model.gap_um, model.lag_um, model.friction_std_per_um,
                 model.k_h, model.f_preload, model.w_true, model.q_zero):
@@ -399,10 +423,35 @@ def move_directions(q_cmd: np.ndarray, q_start: np.ndarray | None = None,
 
 
 def actual_positions(model: ContactModel, q_cmd: np.ndarray,
-                     direction: np.ndarray | float = ZERO_STATE_DIRECTION) -> np.ndarray:
-    """Noise-free actual actuator positions q − lag·direction (backlash), shape (m, n_q)."""
+                     direction: np.ndarray | float = ZERO_STATE_DIRECTION,
+                     play: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free actual actuator positions, shape (m, n_q).
+
+    q − lag·direction (backlash) + w Σ_j (z_j − q) (hysteresis, :func:`hysteresis.offset`).
+
+    Parameters
+    ----------
+    model : ContactModel
+    q_cmd : ndarray, shape (m, n_q) or (n_q,)
+        Commands, µm.
+    direction : float or ndarray broadcastable to (m, n_q)
+        Direction each actuator last moved (±1).
+    play : ndarray, shape (m, n_q, N_PLAY), optional
+        Play states after each move (:func:`hysteresis.play_run`); needed when the model has
+        hysteresis.
+
+    Raises
+    ------
+    ValueError
+        If the model has hysteresis and ``play`` is not given.
+    """
     q = np.atleast_2d(np.asarray(q_cmd, dtype=float))
-    return q - model.lag_um * np.asarray(direction, dtype=float)
+    out = q - model.lag_um * np.asarray(direction, dtype=float)
+    if model.has_hysteresis:
+        if play is None:
+            raise ValueError("this stage has hysteresis: actual_positions needs the play states (play=)")
+        out = out + hysteresis.offset(model.play_w, np.asarray(play, dtype=float).reshape(q.shape + (-1,)), q)
+    return out
 
 
 def tool_displacement(model: ContactModel, p: np.ndarray) -> np.ndarray:
@@ -436,7 +485,9 @@ def mean_reading(
     q_prev : ndarray, shape (m, n_q), optional
         Commands of the move before each row. With backlash, the direction of row k is
         sign(q_k − q_prev,k); where that is 0 the previous row's direction is kept (rows
-        are taken as one run in execution order, starting "up").
+        are taken as one run in execution order, starting "up"). With hysteresis the play
+        states run along the rows the same way (:func:`hysteresis.play_run`); without
+        ``q_prev`` each row is one move from the zero state.
     direction : ndarray, shape (m, n_q), optional
         Explicit last-move directions (±1); overrides ``q_prev``.
     time_s : ndarray (m,) or float, optional
@@ -451,7 +502,11 @@ def mean_reading(
     q = np.atleast_2d(np.asarray(q_cmd, dtype=float))
     if direction is None:
         direction = ZERO_STATE_DIRECTION if q_prev is None else directions_from_steps(q - np.atleast_2d(q_prev))
-    p, _ = solve_equilibrium(model, ball_heights(model, actual_positions(model, q, direction)))
+    play = None
+    if model.has_hysteresis:  # the run's play states; without q_prev each row from the zero state
+        play = (hysteresis.play_step(-model.play_r, q, model.play_r) if q_prev is None
+                else hysteresis.play_run(model.play_r, q, q_prev))
+    p, _ = solve_equilibrium(model, ball_heights(model, actual_positions(model, q, direction, play)))
     return sensor_reading(model, p, time_s)
 
 

@@ -35,17 +35,19 @@ def _one_of_each(rng=np.random.default_rng(0)):
 
 
 def test_registry_is_the_spec_vocabulary():
-    """The registry holds exactly the causes of shared/spec/diagnosis.md, with its parameter names."""
+    """The registry holds exactly the causes of shared/spec/diagnosis.md, with its parameter names,
+    plus the documented extension ``hysteresis`` (docs/diagnosis.md)."""
     spec = {
         "actuator_gain": ("actuator", "gain"), "contact_offset": ("actuator", "dx_mm", "dy_mm"),
         "tool_offset": ("dx_mm", "dy_mm"), "sensor_scale": ("scale",), "sensor_nonlinearity": ("quad_per_um",),
         "contact_loss": ("actuator", "gap_um"), "backlash": ("actuator", "lag_um"), "drift": ("rate_um_per_s",),
         "actuator_friction": ("actuator", "std_per_um"),
     }
+    spec["hysteresis"] = ("actuator", "half_width_um", "range_um")  # the extension
     assert {n: tuple(f.name for f in fields(c)) for n, c in REGISTRY.items()} == spec
     assert all(c.kind in KINDS for c in REGISTRY.values())
     assert [n for n, c in REGISTRY.items() if c.kind == "noise"] == ["actuator_friction"]
-    assert [n for n, c in REGISTRY.items() if c.kind == "dynamic"] == ["contact_loss", "backlash", "drift"]
+    assert [n for n, c in REGISTRY.items() if c.kind == "dynamic"] == ["contact_loss", "backlash", "hysteresis", "drift"]
     # Effects has one field per registered cause
     assert [f.name for f in fields(Effects)] == list(REGISTRY)
 
@@ -75,6 +77,7 @@ def test_corrections_accept_noise_causes_and_refuse_bad_values():
         ("actuator_gain", [{"actuator": 1, "gain": 0.0}], r"actuator_gain\[0\]\.gain"),
         ("contact_loss", [{"actuator": 5, "gap_um": 1.0}], r"contact_loss\[0\]\.actuator"),
         ("backlash", [{"actuator": 1, "lag_um": -0.1}], r"backlash\[0\]\.lag_um"),
+        ("hysteresis", [{"actuator": 2, "half_width_um": 0.2, "range_um": 0.0}], r"hysteresis\[0\]\.range_um"),
         ("drift", {"rate_um_per_s": 0.1, "extra": 1}, r"drift"),
         ("nonsense", {}, r"nonsense"),
     ]:
@@ -90,16 +93,19 @@ def test_each_cause_changes_the_stage_parts_it_names(table1):
     healthy = stage_parts(stage)
     for cause in _one_of_each(np.random.default_rng(3)):
         p = stage_parts(stage, Effects.of([cause]))
-        changed = {k for k in ("contacts_mm", "tool_mm", "gain", "gap_um", "lag_um", "friction_std_per_um")
+        changed = {k for k in ("contacts_mm", "tool_mm", "gain", "gap_um", "lag_um", "friction_std_per_um",
+                               "hysteresis_half_um", "hysteresis_range_um")
                    if not np.array_equal(getattr(p, k), getattr(healthy, k))}
         if p.sensor != healthy.sensor:
             changed.add("sensor")
         want = {"actuator_gain": "gain", "contact_offset": "contacts_mm", "tool_offset": "tool_mm",
                 "sensor_scale": "sensor", "sensor_nonlinearity": "sensor", "contact_loss": "gap_um",
-                "backlash": "lag_um", "drift": "sensor", "actuator_friction": "friction_std_per_um"}[cause.name]
-        assert changed == {want}, cause
+                "backlash": "lag_um", "drift": "sensor", "actuator_friction": "friction_std_per_um",
+                "hysteresis": ("hysteresis_half_um", "hysteresis_range_um")}[cause.name]
+        assert changed == ({want} if isinstance(want, str) else set(want)), cause
     p = stage_parts(stage, Effects.of(_one_of_each(np.random.default_rng(3))), kinds=("static",))
     assert not p.gap_um.any() and not p.lag_um.any() and p.sensor.drift_um_per_s == 0.0
+    assert not p.hysteresis_half_um.any()
 
 
 def test_effects_with_replaces_the_same_cause_on_the_same_actuator():
