@@ -3,8 +3,8 @@
 
 Usage::
 
-    python scripts/diagnosis_confusion.py [--cases 108] [--clean 20] [--off 24] [--corrupt 12]
-        [--timing 3] [--seed 0] [--config configs/stage/table1.yaml]
+    python scripts/diagnosis_confusion.py [--cases 120] [--clean 20] [--off 24] [--loops 8]
+        [--corrupt 12] [--timing 3] [--seed 0] [--config configs/stage/table1.yaml]
         [--noise-from configs/stage/sim_paper.yaml]
 
 Every data set comes from ``tests/independent_stage.py``: a stage simulated apart from
@@ -26,11 +26,13 @@ Tables printed:
    (3σ ≤ bar). Extra causes named besides the planted one are counted.
 2. *Clean*: no defect; any accepted mean cause or ``significant`` is a false positive.
 3. *Off-vocabulary*: a smooth bump, a periodic error in one input, a thermal drift with a time
-   constant, a direction-dependent curvature, and history-dependent shapes: a
-   Prandtl-Ishlinskii hysteresis loop (half-width 0.15-0.3 µm, one actuator or all four) and a
-   periodic gauge error (0.15-0.3 µm, period 8-12 µm along the reading) (equal numbers, in turn);
-   correct when no vocabulary cause is named and ``unexplained`` is; the history and periodic
-   flags of the report are counted.
+   constant, a direction-dependent curvature, and history-dependent shapes: piezo creep (an
+   overshoot growing with the last step on one actuator) and a periodic gauge error (0.15-0.3
+   µm, period 8-12 µm along the reading) (equal numbers, in turn); correct when no vocabulary
+   cause is named and ``unexplained`` is; the history and periodic flags of the report are
+   counted. Then the generator's own hysteresis loops (``--loops``; half-width 0.15-0.3 µm, one
+   actuator or all four), once off the vocabulary and now its ``hysteresis`` cause: correct when
+   ``hysteresis`` is named on exactly the planted actuators, nothing else, nothing unexplained.
 4. *Corrupt cells*: a log (CSV, read by the measurement-log reader) with a random vocabulary
    cause or none and 1-3 corrupt cells (a q cell 40-60 µm, or t shifted by 5-50 µm); correct
    when the outlying rows are exactly the corrupt ones and the named causes equal those of the
@@ -58,12 +60,15 @@ from microctl.cli import main as cli_main  # noqa: E402
 from microctl.diagnosis.data import data_from_arrays, read_for_diagnosis  # noqa: E402
 from microctl.diagnosis.pipeline import run_diagnosis  # noqa: E402
 from microctl.stage.causes import REGISTRY  # noqa: E402
+
+#: The off-vocabulary shapes (the generator's, less those now in the vocabulary).
+OFF_SHAPES = tuple(s for s in ind.OFF_VOCABULARY if s not in ind.IN_VOCABULARY_NOW)
 from microctl.stage.config import load_stage_config  # noqa: E402
 from microctl.testing.plant import parameter_bar  # noqa: E402
 
 SHORT = {"actuator_gain": "gain", "contact_offset": "c_off", "tool_offset": "t_off", "sensor_scale": "scale",
-         "sensor_nonlinearity": "quad", "contact_loss": "c_loss", "backlash": "backlash", "drift": "drift",
-         "actuator_friction": "friction", "unexplained": "unexpl", "none": "none"}
+         "sensor_nonlinearity": "quad", "contact_loss": "c_loss", "backlash": "backlash", "hysteresis": "hyst",
+         "drift": "drift", "actuator_friction": "friction", "unexplained": "unexpl", "none": "none"}
 
 
 def _key(cause: str, actuator) -> str:
@@ -141,12 +146,33 @@ class Cases:
         return n, ind.random_moves(self.geometry, n, rng)
 
 
+def loops_report(cases: Cases, n_loops: int, diagnose, misses: list[str]) -> None:
+    """Section 3's second part: the generator's hysteresis loops (:func:`independent_stage.plant_history`),
+    correct when ``hysteresis`` is named on exactly the planted actuators and nothing else."""
+    ok = flagged = 0
+    for k in range(n_loops):
+        rng, truth = cases.stage("off")
+        n, u = cases.moves("off")
+        truth, info = ind.plant_history(truth, "hysteresis", rng)
+        rep = diagnose(to_data(ind.run(truth, u, rng)), k)
+        want = sorted(_key("hysteresis", a) for a in info["actuators"])
+        good = sorted(vocabulary_named(rep)) == want and "unexplained" not in rep["accepted"]["mean"]
+        ok += good
+        flagged += bool(rep["unexplained"].get("history"))
+        if not good:
+            misses.append(f"loop {k}: {info} n={n} -> accepted {rep['accepted']} {vocabulary_named(rep)}")
+        print(f"  loop {k + 1}/{n_loops}: {'ok' if good else 'MISS'}", file=sys.stderr, flush=True)
+    print(f"   hysteresis loops (the generator's, now a vocabulary cause): named hysteresis on exactly the planted "
+          f"actuators, nothing else, {ok}/{n_loops} (history flag {flagged})")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=108, help="vocabulary cases (cycling through the registry)")
+    ap.add_argument("--cases", type=int, default=120, help="vocabulary cases (cycling through the registry)")
     ap.add_argument("--clean", type=int, default=20, help="clean data sets")
     ap.add_argument("--off", type=int, default=24,
-                    help=f"off-vocabulary cases (the {len(ind.OFF_VOCABULARY)} shapes in turn)")
+                    help=f"off-vocabulary cases (the {len(OFF_SHAPES)} shapes in turn)")
+    ap.add_argument("--loops", type=int, default=8, help="the generator's hysteresis loops (named hysteresis)")
     ap.add_argument("--corrupt", type=int, default=12, help="logs with 1-3 corrupt cells")
     ap.add_argument("--timing", type=int, default=3, help="300-move logs timed through the diagnose command")
     ap.add_argument("--seed", type=int, default=0)
@@ -260,7 +286,7 @@ def main(argv=None) -> int:
     # ---- 3. off-vocabulary ---------------------------------------------------------------------
     off = defaultdict(Counter)
     for k in range(args.off):
-        shape = ind.OFF_VOCABULARY[k % len(ind.OFF_VOCABULARY)]
+        shape = OFF_SHAPES[k % len(OFF_SHAPES)]
         rng, truth = cases.stage("off")
         n, u = cases.moves("off")
         truth, info = ind.plant_off_vocabulary(truth, shape, rng, n)
@@ -279,7 +305,7 @@ def main(argv=None) -> int:
               flush=True)
 
     print("3. Off-vocabulary: no vocabulary cause named / unexplained reported / cases (bar: all)")
-    for shape in ind.OFF_VOCABULARY:
+    for shape in OFF_SHAPES:
         c = off[shape]
         if c["cases"]:
             print(f"   {shape:22s} {c['no vocabulary cause']}/{c['cases']}  {c['unexplained']}/{c['cases']}"
@@ -288,6 +314,7 @@ def main(argv=None) -> int:
     tot = sum(c["cases"] for c in off.values())
     print(f"   {'all':22s} {sum(c['no vocabulary cause'] for c in off.values())}/{tot}  "
           f"{sum(c['unexplained'] for c in off.values())}/{tot}")
+    loops_report(cases, args.loops, diagnose, misses)
     print()
     # ---- 4. corrupt cells ----------------------------------------------------------------------
     corrupt_ok = rows_ok = causes_ok = 0

@@ -39,8 +39,10 @@ from microctl.stage.geometry import Stage
 #: 2 Δ log-likelihood below which two fitted causes are called equivalent.
 EQUIV_LR = 6.0
 
-#: Most mean causes accepted (a safety stop; the data rarely support more).
-MAX_CAUSES = 4
+#: Most mean causes accepted (a safety stop; the data rarely support more). Six: a hysteresis
+#: loop on each of four actuators is four causes, and a greedy first step may take a cause that
+#: stands in for their sum (a sensor scale) before the backward check drops it.
+MAX_CAUSES = 6
 
 
 def cause_entry(spec: CauseSpec, theta: np.ndarray, stderr: np.ndarray, **extra) -> dict:

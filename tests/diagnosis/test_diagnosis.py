@@ -22,7 +22,7 @@ from microctl.testing.plant import compression_um as _compression
 from microctl.testing.plant import parameter_bar, random_cause, simulate, with_noise_of
 
 MEAN_CAUSES = ["actuator_gain", "contact_offset", "tool_offset", "sensor_scale", "sensor_nonlinearity",
-               "contact_loss", "backlash", "drift"]
+               "contact_loss", "backlash", "drift", "hysteresis"]
 
 
 @pytest.fixture(scope="module")

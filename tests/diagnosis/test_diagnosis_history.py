@@ -123,31 +123,28 @@ def _diagnose(cfg, geo, seed, shape, n=200, **kw):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed, half_width, actuators", [(301, 0.15, (2,)), (302, 0.3, (1, 2, 3, 4)),
                                                          (303, 0.2, (4,))])
-def test_hysteresis_is_unexplained_with_its_history_and_names_nothing(cfg, geo, seed, half_width, actuators):
+def test_hysteresis_is_named_on_its_actuators_with_its_loop(cfg, geo, seed, half_width, actuators):
     """Issue 21: a hysteresis loop (one actuator at the lower half-width 0.15 µm, or all four) was
-    named backlash + a gain, with the gain written to extended.yaml. Now ``unexplained``, the history
-    named, and nothing in extended.yaml. (Detection margin on these draws: the play-operator test's
-    p ≤ 1e-11, ≤ 1e-10 after the Bonferroni over the 9 structure tests, against a level of
-    α/8 = 1.25e-4.)"""
-    d, _ = _diagnose(cfg, geo, seed, "hysteresis", half_width_um=half_width, actuators=actuators)
+    named backlash + a gain, with the gain written to extended.yaml. Now it is the vocabulary's
+    ``hysteresis`` on exactly the planted actuators (the generator's own play operators, thresholds
+    R j/4 with R = 4-10 µm), nothing else, nothing left for the history tests, and extended.yaml
+    carries it."""
+    d, info = _diagnose(cfg, geo, seed, "hysteresis", half_width_um=half_width, actuators=actuators)
     rep = d.report
-    assert "unexplained" in rep["accepted"]["mean"]
-    assert rep["unexplained"]["history"] is True
-    assert _vocabulary(rep) == [], rep["accepted"]
-    assert rep["corrections"] == {} and d.extended_config.stage.corrections.is_empty()
-    if len(actuators) == 1:
-        assert f"actuator {actuators[0]}" in rep["unexplained"]["depends_on"]
-    # the loop fitted to the leftover (generic thresholds 1, 2, 4, 8 µm against the truth's R j/4,
-    # R = 4-10 µm) names the planted actuators and their half-width: within 25 % on these draws
-    # (0.18/0.15, 0.26-0.27/0.3, 0.23/0.2 measured), the threshold mismatch being the main error
-    loop = rep["unexplained"]["hysteresis"]
-    assert loop["actuators"] == list(actuators)
+    assert sorted(_vocabulary(rep)) == ["hysteresis"] * len(actuators), rep["accepted"]
+    assert "unexplained" not in rep["accepted"]["mean"]
+    assert rep["unexplained"]["history"] is False
+    loops = {e["params"]["actuator"]: e for e in rep["mean_causes"] if e.get("accepted")}
+    assert sorted(loops) == list(actuators)
+    assert sorted(c.actuator for c in d.extended_config.stage.corrections.hysteresis) == list(actuators)
     for a in actuators:
-        assert loop["half_width_um"][str(a)] == pytest.approx(half_width, rel=0.25)
-    # and it buys a held-out gain: the cross-validated RMSE falls by at least 10 % (measured 34-79 %,
-    # to 0.057-0.063 µm against a gauge noise of 0.05 µm)
-    cv = loop["heldout_rmse_um"]
-    assert cv["with"] < 0.9 * cv["without"], cv
+        # each parameter within the issue's bar (10 %) where this data resolves it (3 σ <= bar), else
+        # within 4 σ: the stage's physics is the generator's (unequal balls, its own flexure), not the
+        # config's, so estimates may sit a few σ off
+        for name, true in (("half_width_um", half_width), ("range_um", info["largest_threshold_um"])):
+            est, se = loops[a]["params"][name], loops[a]["stderr"][name]
+            bar = 0.1 * true
+            assert abs(est - true) <= (bar if 3 * se <= bar else 4 * se), (a, name, est, true, se)
 
 
 @pytest.mark.slow
