@@ -150,6 +150,7 @@ def loops_report(cases: Cases, n_loops: int, diagnose, misses: list[str]) -> Non
     """Section 3's second part: the generator's hysteresis loops (:func:`independent_stage.plant_history`),
     correct when ``hysteresis`` is named on exactly the planted actuators and nothing else."""
     ok = flagged = 0
+    rmse = []
     for k in range(n_loops):
         rng, truth = cases.stage("off")
         n, u = cases.moves("off")
@@ -159,11 +160,18 @@ def loops_report(cases: Cases, n_loops: int, diagnose, misses: list[str]) -> Non
         good = sorted(vocabulary_named(rep)) == want and "unexplained" not in rep["accepted"]["mean"]
         ok += good
         flagged += bool(rep["unexplained"].get("history"))
+        g = rep.get("gain", {}).get("rmse_um", {})
+        if "afm" in g and "extended" in g:
+            rmse.append((g["afm"], g["extended"]))
         if not good:
             misses.append(f"loop {k}: {info} n={n} -> accepted {rep['accepted']} {vocabulary_named(rep)}")
         print(f"  loop {k + 1}/{n_loops}: {'ok' if good else 'MISS'}", file=sys.stderr, flush=True)
     print(f"   hysteresis loops (the generator's, now a vocabulary cause): named hysteresis on exactly the planted "
           f"actuators, nothing else, {ok}/{n_loops} (history flag {flagged})")
+    if rmse:
+        r = np.array(rmse)
+        print(f"   their held-out RMSE (5-fold), AFM -> extended model: median {np.median(r[:, 0]):.3f} -> "
+              f"{np.median(r[:, 1]):.3f} µm, per loop " + ", ".join(f"{a:.3f} -> {b:.3f}" for a, b in rmse))
 
 
 def main(argv=None) -> int:
