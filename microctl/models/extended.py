@@ -263,11 +263,9 @@ class ExtendedForwardModel:
             # each row is a separate move from its own state (not a run)
             direction = approach_direction(q - q_prev, last_direction)
         play = None
-        if self.has_hysteresis:
-            z0 = self.zero_play() if last_play is None else np.asarray(last_play, dtype=float)
-            if s is not None:  # the state's q_prev, then q
-                z0 = hysteresis.play_step(z0, np.atleast_2d(np.asarray(s, dtype=float))[:, 1:], self.model.play_r)
-            play = hysteresis.play_step(z0, q, self.model.play_r)
+        if self.has_hysteresis:  # the state's q_prev, then q
+            z0 = last_play if s is None else self.next_play(np.atleast_2d(np.asarray(s, dtype=float))[:, 1:], last_play)
+            play = self.next_play(q, z0)
         return self.predict_q(q, direction=direction, time_s=time_s, play=play).t
 
     def variance(self, prediction: ExtendedPrediction, dq: np.ndarray, *, actuator_std_um: float,
