@@ -20,21 +20,19 @@ stage's reach, ``BackendError`` from a device, ``SolveError``.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import math
 import re
-import signal
-import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from microctl.control.controller import AFMController, ControllerSettings, OptimalController, with_baseline
+from microctl.control.memory import MemoryCompensated, with_memory
 from microctl.control.result import ControlResult
 from microctl.errors import BackendError, ConfigError, SolveError
 from microctl.measurement.appending import append_log_writer
@@ -42,6 +40,7 @@ from microctl.measurement.log import Measurement, MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
+from microctl.util.signals import interrupts_deferred
 
 __all__ = [
     "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
@@ -257,7 +256,8 @@ class Controller:
 
     def _load(self, model: Any) -> None:
         eafm = EAFM(self.stage.afm, model)
-        ctl = OptimalController(eafm, self.settings)
+        # with hysteresis corrections the controller meets the target with the play states
+        ctl = with_memory(OptimalController(eafm, self.settings), self.stage.afm)
         self.eafm, self.optimal = eafm, ctl
         self.model_source = eafm.source
         self._baseline: AFMController | None = None
@@ -280,7 +280,7 @@ class Controller:
         return self.optimal.reachable_interval(self.stage.check_state(state))
 
     def solve(self, target_um: float, state: Sequence[float] | np.ndarray | None = None, *,
-              baseline: bool = False) -> ControlResult:
+              baseline: bool = False, memory: np.ndarray | None = None) -> ControlResult:
         """The optimal control signal for ``target_um`` from ``state`` (default the zero state).
 
         Parameters
@@ -290,6 +290,10 @@ class Controller:
         baseline : bool
             Also solve the AFM baseline from the same state and say whether the chosen pose is
             credibly quieter (``result.baseline``, ``result.vs_baseline``).
+        memory : ndarray, shape (n_q, N_PLAY), optional
+            The hysteresis play states before the move, for a stage with hysteresis corrections
+            (:mod:`microctl.control.memory`; default: one move from the zero state to the
+            state's q). :class:`Operator` passes them from the commands it sent.
 
         Returns
         -------
@@ -304,11 +308,17 @@ class Controller:
             The target is outside what the stage reaches from ``state`` (the message gives the interval).
         """
         target = _finite(target_um, "target_um")
-        res = self.optimal.solve(target, self.stage.check_state(state))
+        s = self.stage.check_state(state)
+        carries = isinstance(self.optimal, MemoryCompensated)
+        if carries and memory is None:
+            memory = self.optimal.default_memory(s)
+        res = self.optimal.solve(target, s, memory=memory) if carries else self.optimal.solve(target, s)
         if baseline:
             if self._baseline is None:
-                self._baseline = AFMController(self.stage.afm, self.settings, reporter=self.eafm)
-            res = with_baseline(self.eafm, res, self._baseline, self.settings.credible_level)
+                self._baseline = with_memory(AFMController(self.stage.afm, self.settings, reporter=self.eafm),
+                                             self.stage.afm)
+            res = with_baseline(self.eafm, res, self._baseline, self.settings.credible_level,
+                                memory=memory if carries else None)
         return res
 
     def to_dict(self, res: ControlResult) -> dict:
@@ -399,29 +409,6 @@ class MoveRecord:
         }
 
 
-@contextlib.contextmanager
-def _interrupts_deferred() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) until the block ends, so a move is never executed without its log row.
-
-    In the main thread only (elsewhere signals are not delivered to Python anyway). A SIGINT in
-    the block is re-raised as KeyboardInterrupt when it ends, through the handler that was set.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    got: list[tuple] = []
-    old = signal.signal(signal.SIGINT, lambda *a: got.append(a))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
-        if got:
-            if callable(old):
-                old(*got[0])
-            elif old != signal.SIG_IGN:
-                raise KeyboardInterrupt
-
-
 class Operator:
     """Moves a stage with a controller and keeps every executed move in a measurement log.
 
@@ -451,6 +438,11 @@ class Operator:
         self._writer = None
         self._seq = 0
         self._time_offset = 0.0
+        afm = self.stage.afm
+        # the hysteresis play states (stage corrections with hysteresis only), stepped with every
+        # command sent; before the first: one move from the zero state to the backend's q
+        self.memory = afm.memory.step(None, np.asarray(backend.state, dtype=float)[1:]) if afm.memory.active \
+            else None
         if log is not None:
             self._writer, self._seq, self._time_offset = append_log_writer(log, self.stage.config.stage,
                                                                            MOVE_LOG_COLUMNS)
@@ -480,12 +472,13 @@ class Operator:
             From the device (the log keeps every completed move).
         """
         s = self.backend.state
-        res = self.controller.solve(target_um, s)
+        res = self.controller.solve(target_um, s) if self.memory is None else \
+            self.controller.solve(target_um, s, memory=self.memory)
         lo, hi = self.stage.range_um
         tol = self.controller.settings.range_tol
         if not (np.all(np.isfinite(res.q)) and np.all(res.q >= lo - tol) and np.all(res.q <= hi + tol)):
             raise SolveError(f"the command q = {res.q.tolist()} µm leaves the configured ranges; nothing was sent")
-        with _interrupts_deferred():
+        with interrupts_deferred():
             m: Measurement = self.backend.move(res.u)
             if self._time_offset:
                 m = replace(m, time_s=m.time_s + self._time_offset)  # the log's clock continues
@@ -498,6 +491,8 @@ class Operator:
                                                          if k in self._writer.extra_columns})
             self._seq += 1
             self.moves += 1
+            if self.memory is not None:
+                self.memory = self.stage.afm.memory.step(self.memory, np.asarray(m.q_um, dtype=float))
         return MoveRecord(seq=seq, target_um=res.target_um, state_before=s, u=np.asarray(m.u, dtype=float),
                           q_um=np.asarray(m.q_um, dtype=float), predicted_um=res.predicted_um,
                           predicted_std_um=res.predicted_std_um, measured_um=float(m.t_um), time_s=float(m.time_s),
@@ -573,6 +568,8 @@ class Learner:
             ctl, u = self.operator.controller, np.asarray(record.u, dtype=float)
             x = np.concatenate([np.asarray(record.state_before, dtype=float), u])
             y = record.measured_um - float(np.ravel(self.operator.stage.afm.t_of(u[None, :]))[0])
+            if record.solution is not None:  # the hysteresis loop's part of the AFM prediction (0 without)
+                y -= record.solution.hysteresis_um
             ctl.reload(update(ctl.eafm.model, x[None, :], [y]))
         return None
 

@@ -24,7 +24,7 @@ Sections (``--only`` picks some; default: all, in this order):
     of scripts/rig_families.py at 125 and 200 training moves; ``docs/generated/bench_rigs.md``).
     The longest (about an hour on a loaded 2-core machine); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side.
-``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``
+``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``
     The other benchmark scripts with the arguments the docs quote; their printed tables are
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
 
@@ -67,6 +67,7 @@ CAPTURED = {
     "diagnosis_confusion": ("scripts/diagnosis_confusion.py", ()),
     "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
     "bench_learn": ("scripts/bench_learn.py", ("--rigs", "2", "--moves", "1000", "--refit-every", "250")),
+    "bench_memory": ("scripts/bench_memory.py", ("--rigs", "10", "--moves", "200", "--targets", "20", "--diagnose")),
 }
 SECTIONS = ("main_job", "paper_scale", "bench_rigs", *CAPTURED)
 #: Quantities of the per-offset table of the paper-scale rig: (label, controller, key).

@@ -24,10 +24,14 @@ from microctl.models.eafm import EAFM
 __all__ = ["AFMController", "compare_noise", "with_baseline"]
 
 
-def with_baseline(eafm: EAFM, res: ControlResult, baseline: Controller, level: float = 0.95) -> ControlResult:
+def with_baseline(eafm: EAFM, res: ControlResult, baseline: Controller, level: float = 0.95,
+                  memory: np.ndarray | None = None) -> ControlResult:
     """``res`` with the ``baseline`` controller's result from the same state and whether ``res.u``
-    is credibly quieter than the baseline's command (:func:`compare_noise`)."""
-    b = baseline.solve(res.target_um, res.state)
+    is credibly quieter than the baseline's command (:func:`compare_noise`). ``memory``: the
+    hysteresis play states both start from, for a baseline wrapped by
+    :class:`~microctl.control.memory.MemoryCompensated`."""
+    b = baseline.solve(res.target_um, res.state) if memory is None else \
+        baseline.solve(res.target_um, res.state, memory=memory)
     return replace(res, vs_baseline=compare_noise(eafm, res.state, res.u, b.u, level), baseline=b)
 
 

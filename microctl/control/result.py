@@ -69,6 +69,9 @@ class ControlResult:
         Predicted uncertainty of the mean at u: ``sqrt(f_var)``, the posterior std of the mean
         correction (large where f extrapolates, e.g. a corner the training never visited); NaN
         without an EAFM. ``predicted_std_um`` combines it with the noise.
+    hysteresis_um : float
+        The hysteresis loop's part of ``predicted_um``: the reading shift the play states before
+        the move give at u (:mod:`microctl.control.memory`); 0 without hysteresis corrections.
     vs_baseline : NoiseComparison or None
         For the optimal controller given a baseline: is u credibly quieter than the
         baseline's command from the same state?
@@ -93,6 +96,7 @@ class ControlResult:
     noise_std_um: float = float("nan")
     noise_upper_std_um: float = float("nan")
     bias_std_um: float = float("nan")
+    hysteresis_um: float = 0.0
     vs_baseline: "NoiseComparison | None" = None
     baseline: "ControlResult | None" = None
 
@@ -106,7 +110,7 @@ class ControlResult:
             "iterations": self.iterations, "solve_time_s": self.solve_time_s, "success": self.success,
             "constraint_residual_um": self.constraint_residual, "n_starts": self.n_starts,
             "noise_std_um": self.noise_std_um, "noise_upper_std_um": self.noise_upper_std_um,
-            "bias_std_um": self.bias_std_um,
+            "bias_std_um": self.bias_std_um, "hysteresis_um": self.hysteresis_um,
             "vs_baseline": None if self.vs_baseline is None else self.vs_baseline.to_dict(),
         }
 

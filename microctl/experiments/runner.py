@@ -29,6 +29,7 @@ import numpy as np
 from microctl.backends import make_backend
 from microctl.backends.base import StageBackend
 from microctl.control.controller import ControlResult, OptimalController
+from microctl.control.memory import with_memory
 from microctl.errors import BackendError, SolveError
 import microctl.experiments.controllers as registry
 from microctl.experiments.config import ExperimentConfig
@@ -311,6 +312,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
             r["q_um"] = np.full((T, J, afm.n_q), np.nan)
             r["status"] = [[""] * J for _ in range(T)]
             r["fallbacks"] = 0
+            carries = afm.memory.active and not (spec.sequence or spec.needs_truth)
             for k in range(T):
                 # the same stage seed for every controller: common random numbers
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
@@ -320,18 +322,22 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                     rec.move(b, np.zeros(afm.n_p), trial=k, target_um=0.0, controller=name)  # the zero state
                     prev_u = None
                     plan: Any = None
+                    # hysteresis corrections: the play states, stepped with every command sent
+                    memory = afm.memory.step(None, b.state[1:]) if carries else None
                     for j, target in enumerate(targets):
                         s = b.state
                         if spec.sequence:
                             sol, plan = _sequence_step(ctrl, spec.replan, targets[j:], s, plan, run, r,
                                                        fallback=ctrls["afm"])
                         else:
-                            sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"])
+                            sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"], memory=memory)
                         if truth is not None:
                             r["true_mean_um"][k, j] = float(truth.true_mean(s, sol.u))
                             r["true_std_um"][k, j] = math.sqrt(float(truth.true_var(s, sol.u)))
                         m, _ = rec.move(b, sol.u, trial=k, target_um=target, controller=name)
                         r["reached_um"][k, j] = m.t_um
+                        if memory is not None:
+                            memory = afm.memory.step(memory, b.state[1:])
                         r["predicted_um"][k, j] = sol.predicted_um
                         r["predicted_std_um"][k, j] = sol.predicted_std_um
                         r["solve_time_s"][k, j] = sol.solve_time_s
@@ -347,16 +353,23 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
     return {"targets_um": targets, "trials": T, "controllers": res}
 
 
-def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallback) -> ControlResult:
-    """Solve with a warm start; on failure retry cold, then fall back to the AFM command (counted)."""
+def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallback,
+           memory: np.ndarray | None = None) -> ControlResult:
+    """Solve with a warm start; on failure retry cold, then fall back to the AFM command (counted).
+
+    With ``memory`` (the hysteresis play states before the move) both controllers meet the
+    target with the loop (:class:`~microctl.control.memory.MemoryCompensated`)."""
+    kw = {} if memory is None else {"memory": memory}
+    if memory is not None:
+        ctrl, fallback = with_memory(ctrl, run.afm), with_memory(fallback, run.afm)
     for u_init in (prev_u, None):
         try:
-            return ctrl.solve(float(target), s, u_init=u_init)
+            return ctrl.solve(float(target), s, u_init=u_init, **kw)
         except SolveError as exc:
             err = exc
     r["fallbacks"] += 1
     run.say(f"experiment: {ctrl.name} could not solve {target:g} µm ({err}); the AFM command was used")
-    return fallback.solve(float(target), s)
+    return fallback.solve(float(target), s, **kw)
 
 
 def _sequence_step(ctrl, replan: bool, rest: list[float], s: np.ndarray, plan: Any, run: _Run, r: dict,

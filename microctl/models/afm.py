@@ -18,7 +18,10 @@ scale and nonlinearity) are applied to the *prediction*: the command is still q 
 the CAD geometry, the balls move G q, the platform settles at the least-squares pose of the
 (shared elastic) contact heights, and the gauge reads through :class:`~microctl.stage.sensor.Sensor`.
 Causes that need the state, time or the contact physics (the ``dynamic`` kind: backlash,
-contact loss, drift) belong to the physics model (:mod:`microctl.stage.physics`), not here.
+contact loss, drift) belong to the physics model (:mod:`microctl.stage.physics`), not here,
+except hysteresis, whose memory (play states) the AFM carries beside the state
+(:attr:`AnalyticForwardModel.memory`, :mod:`microctl.models.memory`): the GP's input x = [s; u]
+cannot express it.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import casadi as ca
 import numpy as np
 
 from microctl.errors import ConfigError, SolveError
+from microctl.models.memory import ActuatorMemory
 from microctl.stage.causes import REGISTRY, Effects, stage_parts
 from microctl.stage.geometry import Stage
 from microctl.stage.kinematics import inverse_kinematics_matrix, tool_vector
@@ -188,6 +192,11 @@ class AnalyticForwardModel:
     sensor : Sensor
         The gauge transfer under the static corrections (forward, derivative, inverse);
         ``scale`` and ``quad`` are its coefficients.
+    memory : ActuatorMemory
+        The hysteresis corrections' play-state model (:mod:`microctl.models.memory`;
+        ``memory.active`` is False without hysteresis): the prediction at a command depends on
+        the play states before the move, which the callers that know the command history pass
+        (:mod:`microctl.control.memory`); ``t_of`` is the prediction without the loop.
     f_a, ik, tool : casadi.Function
         Named Functions: ``f_a(s, u) -> (t, q)``, ``ik(u) -> q``, ``tool(u) -> t``.
     """
@@ -200,7 +209,9 @@ class AnalyticForwardModel:
         self.K = inverse_kinematics_matrix(stage)
         self.w = tool_vector(stage)
         corr = stage.corrections
-        self.dynamic_corrections = tuple(n for n, c in REGISTRY.items() if c.kind == "dynamic" and getattr(corr, n))
+        # dynamic causes left to the GP (hysteresis is applied through the play states, ``memory``)
+        self.dynamic_corrections = tuple(n for n, c in REGISTRY.items()
+                                         if c.kind == "dynamic" and n != "hysteresis" and getattr(corr, n))
         # Static corrections: balls move G q (gains), the platform settles at the pose whose
         # contact heights best match them (elastic sharing among equal contacts: least squares),
         # the gauge reads the corrected tool point through the corrected sensor.
@@ -209,6 +220,10 @@ class AnalyticForwardModel:
         self.F = np.linalg.pinv(K_true) @ np.diag(parts.gain)
         self.w_pred = tool_vector(stage, parts) @ self.F @ self.K
         self.sensor: Sensor = parts.sensor
+        # the hysteresis loop's memory (play states) on the actual positions: same static map
+        loop = stage_parts(stage, Effects(hysteresis=corr.hysteresis), ("dynamic",))
+        self.memory = ActuatorMemory.from_parts(loop.hysteresis_half_um, loop.hysteresis_range_um,
+                                                tool_vector(stage, parts) @ self.F, self.sensor)
         self.lo = stage.range_lo
         self.hi = stage.range_hi
         self.workspace = Workspace(
@@ -292,7 +307,8 @@ class AnalyticForwardModel:
 
         Backlash, contact loss and drift need the state, the contact physics or time; the
         AFM (and so the EAFM graph and the controller) leaves them to the GP, which learns
-        them from the residual. ``None`` when there are none.
+        them from the residual. ``None`` when there are none. Hysteresis is not among them: the
+        AFM carries its play states (:attr:`memory`, :mod:`microctl.models.memory`).
         """
         if not self.dynamic_corrections:
             return None

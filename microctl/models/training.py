@@ -40,7 +40,7 @@ class ResidualData:
     X : ndarray, shape (n, n_s + n_p)
         ``[s_prev; u]`` per row.
     y : ndarray, shape (n,)
-        ``t' - T_t f_a(s_prev, u)`` (µm).
+        ``t' - T_t f_a(s_prev, u)`` (µm); with hysteresis corrections f_a includes the loop.
     x_names : tuple of str
     """
 
@@ -57,6 +57,9 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
     log : MeasurementLog
         With arrays ``u`` (n, n_p), ``t`` (n,), ``s_prev`` (n, n_s).
     afm : AnalyticForwardModel
+        With hysteresis corrections (``afm.memory.active``) the AFM's prediction includes the
+        loop, its play states run from the zero state along the rows in execution order (each
+        row fed its previous command q_prev, then its command: :mod:`microctl.models.memory`).
     """
     u = np.asarray(log.u, dtype=float)
     s = np.asarray(log.s_prev, dtype=float)
@@ -64,7 +67,10 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
     if u.ndim != 2 or u.shape[1] != afm.n_p or s.shape != (u.shape[0], afm.n_s) or t.shape != (u.shape[0],):
         raise DataError(f"measurement log arrays have shapes u {u.shape}, s_prev {s.shape}, t {t.shape}; "
                         f"expected (n, {afm.n_p}), (n, {afm.n_s}), (n,)")
-    y = t - np.asarray(afm.t_of(u))  # eq. 3: y = t' - T_t f_a(s, u)
+    t_afm = np.asarray(afm.t_of(u))
+    if afm.memory.active:  # the hysteresis loop, run along the log's commands in execution order
+        t_afm = t_afm + afm.memory.reading_shift(u @ afm.w_pred, afm.memory.run_shift(afm.q_of(u), s[:, 1:]))
+    y = t - t_afm  # eq. 3: y = t' - T_t f_a(s, u)
     names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
     return ResidualData(X=np.hstack([s, u]), y=y, x_names=names)
 

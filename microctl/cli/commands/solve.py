@@ -14,6 +14,7 @@ from microctl.control.controller import (
     OptimalController,
     with_baseline,
 )
+from microctl.control.memory import with_memory
 from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.control.sequence_objectives import SEQUENCE_OBJECTIVES
 from microctl.errors import ConfigError, UnreachableTargetError
@@ -126,7 +127,14 @@ def _run(args: argparse.Namespace) -> int:
     try:
         if targets is not None:
             return _run_sequence(args, afm, eafm, settings, base_ctrl, targets, state)
-        res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
+        if afm.memory.active:  # hysteresis corrections: the play states of a move from the zero state to q
+            print("solve: note: stage.corrections has hysteresis; without the command history the play states "
+                  "are those of one move from the zero state to the state's q", file=sys.stderr)
+            res = with_baseline(eafm, with_memory(OptimalController(eafm, settings), afm).solve(args.target, state),
+                                with_memory(base_ctrl, afm), settings.credible_level,
+                                memory=afm.memory.step(None, np.asarray(state, dtype=float)[1:]))
+        else:
+            res = OptimalController(eafm, settings, baseline=base_ctrl).solve(args.target, state)
     except UnreachableTargetError as exc:  # one range, rounded as `stage show` rounds it
         raise UnreachableTargetError(_rounded(str(exc))) from None
     base = res.baseline
