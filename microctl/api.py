@@ -329,6 +329,7 @@ class Controller:
             "u": dict(zip(dof, map(float, res.u))), "q_um": res.q.tolist(), "predicted_um": res.predicted_um,
             "predicted_std_um": res.predicted_std_um, "noise_std_um": res.noise_std_um,
             "noise_upper_std_um": res.noise_upper_std_um, "bias_std_um": res.bias_std_um,
+            "hysteresis_um": res.hysteresis_um,
             "objective": res.objective, "r_e": self.settings.r_e, "kappa": self.settings.kappa,
             "status": res.status, "success": res.success, "iterations": res.iterations,
             "solve_time_s": res.solve_time_s, "model": {"noise_model": self.eafm.model.noise_model},

@@ -178,6 +178,7 @@ def _step_dict(afm: AnalyticForwardModel, eafm: EAFM, settings: ControllerSettin
         "noise_std_um": res.noise_std_um,
         "noise_upper_std_um": res.noise_upper_std_um,
         "bias_std_um": res.bias_std_um,
+        "hysteresis_um": res.hysteresis_um,
         "objective": res.objective,
         "r_e": settings.r_e,
         "kappa": settings.kappa,
@@ -218,6 +219,9 @@ def _print_single(afm: AnalyticForwardModel, settings: ControllerSettings, eafm:
     print(f"{'EAFM pred. std (µm)':22s} {res.predicted_std_um:14.6f} {base.predicted_std_um:14.6f}")
     print(f"{'  of it, mean unc. (µm)':22s} {res.bias_std_um:14.6f} {'':>14s}  (std of the GP's mean correction "
           "at the command: the predicted bias uncertainty)")
+    if res.hysteresis_um:
+        print(f"{'  of it, hysteresis (µm)':22s} {res.hysteresis_um:14.6f} {base.hysteresis_um:14.6f}  (the loop's "
+              "shift from the play states before the move: stage.corrections' hysteresis)")
     print("(both columns predicted by the EAFM: the AFM baseline's command reaches its AFM target, not "
           "necessarily the EAFM's)")
     verdict = ("credibly quieter than the AFM baseline's" if cmp.credible else
