@@ -11,6 +11,9 @@ the predicted reading with the loop is the target: eq. 4's constraint with the m
 changing the controller's graph (whose GP was trained on the residual with the loop taken out,
 :func:`microctl.models.training.residual_dataset`).
 
+A sequence controller's plan (``plan``) is wrapped the same way, the shift of every step run
+along the planned commands (:meth:`MemoryCompensated.plan`).
+
 Who moves the stage knows the command history and passes the play states (``memory=``):
 :class:`microctl.api.Operator`, the experiments' runner and :meth:`MemoryCompensated.solve_sequence`
 step them with every executed command (:meth:`~microctl.models.memory.ActuatorMemory.step`, from
@@ -26,14 +29,21 @@ from dataclasses import replace
 import numpy as np
 
 from microctl.control.base import parse_state
-from microctl.control.result import Controller, ControlResult
+from microctl.control.result import Controller, ControlResult, SequenceResult
 from microctl.errors import SolveError
 from microctl.models.afm import AnalyticForwardModel
 
-__all__ = ["MemoryCompensated", "with_memory", "MEMORY_MAX_ITER"]
+__all__ = ["MemoryCompensated", "with_memory", "MEMORY_MAX_ITER", "MEMORY_TOL_UM"]
 
 #: Most solves of the fixed-point iteration on the loop's shift (each a full controller solve).
 MEMORY_MAX_ITER = 12
+#: How far the loop's shift may still move when the iteration stops, µm (0.1 nm: a hundred times
+#: below the quietest gauge the package has met). Each iteration re-solves the whole problem, so
+#: the shift moves by the solver's own tolerance in u times the loop's slope; a plan's global
+#: seeding can even switch between nearby optima, so ``constraint_tol`` (1e-8 µm) is not reached
+#: reliably. The result's ``constraint_residual`` is measured with the loop, and stays within
+#: this plus the controller's ``constraint_tol``.
+MEMORY_TOL_UM = 1e-4
 
 
 def with_memory(controller: Controller, afm: AnalyticForwardModel) -> Controller:
@@ -105,7 +115,7 @@ class MemoryCompensated:
         t0 = time.perf_counter()
         target = float(target_um)
         z = self.default_memory(state) if memory is None else self.afm.memory.check(memory)
-        tol = max(getattr(self.settings, "constraint_tol", 1e-8), 1e-9)
+        tol = MEMORY_TOL_UM
         sigma, u0 = 0.0, u_init
         hist: list[tuple[float, float]] = []  # (σ tried, F = σ(u*) - σ)
         res: ControlResult | None = None
@@ -129,6 +139,46 @@ class MemoryCompensated:
         return replace(res, target_um=target, predicted_um=res.predicted_um + sig_u, hysteresis_um=sig_u,
                        constraint_residual=residual, success=res.success and ok, status=status, iterations=iters,
                        solve_time_s=time.perf_counter() - t0)
+
+    def plan(self, targets_um, state: np.ndarray | None = None, *, u_init: np.ndarray | None = None,
+             memory: np.ndarray | None = None) -> SequenceResult:
+        """A sequence controller's plan (``inner.plan``) with the loop's shift met at every step.
+
+        The shift of step k depends on the play states the planned commands before it leave, so
+        the plan is made for the targets ``t_k - σ_k``, the shifts are run along its commands
+        from ``memory`` (default :meth:`default_memory`), and it is made again (warm-started) until
+        no shift moves by more than the tolerance (at most :data:`MEMORY_MAX_ITER` plans).
+
+        Returns
+        -------
+        SequenceResult
+            Steps as :meth:`solve` returns them (``predicted_um`` with the loop, ``hysteresis_um``).
+        """
+        t0 = time.perf_counter()
+        targets = np.asarray(targets_um, dtype=float).reshape(-1)
+        z0 = self.default_memory(state) if memory is None else self.afm.memory.check(memory)
+        tol = MEMORY_TOL_UM
+        sigma, u0, iters = np.zeros(targets.size), u_init, 0
+        broyden = _Broyden(targets.size)
+        for _ in range(MEMORY_MAX_ITER):
+            res = self.inner.plan(targets - sigma, state, u_init=u0)
+            iters += res.iterations
+            shifts, z = np.empty(targets.size), z0
+            for k, step in enumerate(res.steps):
+                shifts[k] = self.shift_um(z, step.u)
+                z = self.afm.memory.step(z, step.q)
+            moved = float(np.max(np.abs(shifts - sigma)))
+            if moved <= tol:
+                break
+            sigma, u0 = broyden.step(sigma, shifts - sigma), res.u
+        ok = moved <= tol
+        steps = tuple(replace(st, target_um=float(t), predicted_um=st.predicted_um + float(sh), hysteresis_um=float(sh),
+                              constraint_residual=abs(st.predicted_um + float(sh) - float(t)))
+                      for st, t, sh in zip(res.steps, targets, shifts))
+        status = res.status if ok else (f"{res.status}; the hysteresis shifts did not settle in "
+                                        f"{MEMORY_MAX_ITER} plans (|Δ| = {moved:.2g} µm)")
+        return replace(res, steps=steps, targets_um=tuple(float(t) for t in targets), status=status,
+                       success=res.success and ok, iterations=iters, solve_time_s=time.perf_counter() - t0)
 
     def solve_sequence(self, targets: list[float], states: list[np.ndarray] | None = None,
                        memory: np.ndarray | None = None) -> list[ControlResult]:
@@ -158,3 +208,25 @@ def _next_sigma(hist: list[tuple[float, float]]) -> float:
     if f1 == f0:
         return s1 + f1
     return s1 - f1 * (s1 - s0) / (f1 - f0)
+
+
+class _Broyden:
+    """Broyden's method on F(σ) = σ(u*(t - σ)) - σ for the T shifts of a plan: step k's shift
+    depends on the planned commands before it, so F's Jacobian is lower triangular and the
+    steps are coupled. Starts from J = -I (the first step is the plain fixed-point step)."""
+
+    def __init__(self, n: int):
+        self.J = -np.eye(n)
+        self.last: tuple[np.ndarray, np.ndarray] | None = None
+
+    def step(self, sigma: np.ndarray, F: np.ndarray) -> np.ndarray:
+        if self.last is not None:
+            ds, dF = sigma - self.last[0], F - self.last[1]
+            nn = float(ds @ ds)
+            if nn > 0:
+                self.J = self.J + np.outer(dF - self.J @ ds, ds) / nn
+        self.last = (sigma, F)
+        try:
+            return sigma - np.linalg.solve(self.J, F)
+        except np.linalg.LinAlgError:
+            return sigma + F

@@ -264,6 +264,8 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
     n, T = len(U), cfg.absolute.trials
     meas = np.full((T, n), np.nan)
     afm_pred = np.asarray(afm.t_of(U), dtype=float)
+    loop = _absolute_loop_shifts(afm, U)  # hysteresis corrections: the loop along u0, u1, u0, u2, ...
+    afm_pred = afm_pred + loop
     eafm_mean = np.full((T, n), np.nan)
     eafm_std = np.full((T, n), np.nan)
     true_mean = np.full((T, n), np.nan)
@@ -277,7 +279,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
                     rec.move(b, zero, trial=k, point=-1, controller="none")
                     s = b.state
                     p = eafm.predict(s, u)
-                    eafm_mean[k, i], eafm_std[k, i] = float(p.t_mean[0]), math.sqrt(float(p.t_var[0]))
+                    eafm_mean[k, i], eafm_std[k, i] = float(p.t_mean[0]) + loop[i], math.sqrt(float(p.t_var[0]))
                     if truth is not None:
                         true_mean[k, i] = float(truth.true_mean(s, u))
                         true_std[k, i] = math.sqrt(float(truth.true_var(s, u)))
@@ -287,6 +289,23 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
     run.timings_s["absolute"] = time.perf_counter() - t0
     return {"u": U, "measured_um": meas, "afm_um": afm_pred, "eafm_mean_um": eafm_mean,
             "eafm_std_um": eafm_std, "true_mean_um": true_mean, "true_std_um": true_std}
+
+
+def _absolute_loop_shifts(afm, U: np.ndarray) -> np.ndarray:
+    """The hysteresis loop's reading shift at each absolute point (0 without hysteresis corrections).
+
+    Every trial runs the same commands from a fresh stage (the zero state, then each point with a
+    return to zero before it), so the play states before point i, and its shift, are the same in
+    every trial."""
+    mem = afm.memory
+    if not mem.active:
+        return np.zeros(len(U))
+    z, out, zero_q = mem.zero(), np.empty(len(U)), np.zeros(afm.n_q)
+    for i, u in enumerate(U):
+        z = mem.step(z, zero_q)
+        out[i] = mem.reading_shift(afm.w_pred @ u, mem.displacement_shift(z, afm.K @ u))
+        z = mem.step(z, afm.K @ u)
+    return out
 
 
 def _controllers(run: _Run, eafm: EAFM) -> dict:
@@ -312,7 +331,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
             r["q_um"] = np.full((T, J, afm.n_q), np.nan)
             r["status"] = [[""] * J for _ in range(T)]
             r["fallbacks"] = 0
-            carries = afm.memory.active and not (spec.sequence or spec.needs_truth)
+            carries = afm.memory.active and not spec.needs_truth
             for k in range(T):
                 # the same stage seed for every controller: common random numbers
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
@@ -328,7 +347,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                         s = b.state
                         if spec.sequence:
                             sol, plan = _sequence_step(ctrl, spec.replan, targets[j:], s, plan, run, r,
-                                                       fallback=ctrls["afm"])
+                                                       fallback=ctrls["afm"], memory=memory)
                         else:
                             sol = _solve(ctrl, target, s, prev_u, run, r, fallback=ctrls["afm"], memory=memory)
                         if truth is not None:
@@ -373,7 +392,7 @@ def _solve(ctrl, target: float, s: np.ndarray, prev_u, run: _Run, r: dict, fallb
 
 
 def _sequence_step(ctrl, replan: bool, rest: list[float], s: np.ndarray, plan: Any, run: _Run, r: dict,
-                   fallback) -> tuple[ControlResult, Any]:
+                   fallback, memory: np.ndarray | None = None) -> tuple[ControlResult, Any]:
     """The next move of a sequence controller over the remaining targets ``rest``, from the state s.
 
     A re-planning controller (``replan``, e.g. ``eafm_sequence``) plans the whole list at the first move and re-plans the remaining targets
@@ -385,29 +404,33 @@ def _sequence_step(ctrl, replan: bool, rest: list[float], s: np.ndarray, plan: A
     state only through q, which the commands fix, so a re-plan would return the same moves.
     Returns the move and what the next call needs (the plan). A failed plan is retried cold,
     then the AFM command is used for this move (counted as a fallback) and the next move plans
-    afresh.
+    afresh. With ``memory`` (the hysteresis play states before the move) the plans and the
+    fallback meet the targets with the loop (:class:`~microctl.control.memory.MemoryCompensated`).
     """
+    kw = {} if memory is None else {"memory": memory}
+    if memory is not None:
+        ctrl, fallback = with_memory(ctrl, run.afm), with_memory(fallback, run.afm)
     if not replan:
         if not plan:
             try:
-                plan = ctrl.plan(rest, s).steps
+                plan = ctrl.plan(rest, s, **kw).steps
             except SolveError as exc:
                 r["fallbacks"] += 1
                 run.say(f"experiment: {ctrl.name} could not plan {rest} µm ({exc}); the AFM command was used")
-                return fallback.solve(float(rest[0]), s), None
+                return fallback.solve(float(rest[0]), s, **kw), None
             return plan[0], plan[1:]
         return replace(plan[0], solve_time_s=0.0), plan[1:]  # planned at an earlier move
     err: Exception | None = None
     warm = [plan.u[1:]] if plan is not None and len(plan.steps) > 1 else []
     for u_init in (*warm, None):
         try:
-            new = ctrl.plan(rest, s, u_init=u_init)
+            new = ctrl.plan(rest, s, u_init=u_init, **kw)
             return new.steps[0], new
         except SolveError as exc:
             err = exc
     r["fallbacks"] += 1
     run.say(f"experiment: {ctrl.name} could not plan {rest} µm ({err}); the AFM command was used")
-    return fallback.solve(float(rest[0]), s), None
+    return fallback.solve(float(rest[0]), s, **kw), None
 
 
 # --------------------------------------------------------------------------------------

@@ -237,11 +237,17 @@ def _run_sequence(args: argparse.Namespace, afm: AnalyticForwardModel, eafm: EAF
     """``--targets``: the sequence-optimal plan, each step beside the AFM baseline from the same state."""
     from microctl.control.sequence import SequenceController
 
-    plan = SequenceController(eafm, settings).plan(targets, state)
+    if afm.memory.active:  # hysteresis corrections: the play states run along the planned commands
+        z = afm.memory.step(None, np.asarray(state, dtype=float)[1:])
+        plan = with_memory(SequenceController(eafm, settings), afm).plan(targets, state, memory=z)
+        base_ctrl = with_memory(base_ctrl, afm)
+    else:
+        z, plan = None, SequenceController(eafm, settings).plan(targets, state)
     steps = []
     for res in plan.steps:
-        res = with_baseline(eafm, res, base_ctrl, settings.credible_level)
+        res = with_baseline(eafm, res, base_ctrl, settings.credible_level, memory=z)
         steps.append((res, res.baseline))
+        z = None if z is None else afm.memory.step(z, res.q)
     out = {
         "targets_um": list(plan.targets_um),
         "state": {n: float(v) for n, v in zip(afm.state_names, state)},
