@@ -88,6 +88,30 @@ class Step:
     accepted: bool
     equivalent: tuple = ()
     chosen: dict | None = None
+    members: tuple = ()
+
+    def accepts(self, key: str) -> bool:
+        """Whether this step accepted the candidate ``key`` (alone, or in a shared group)."""
+        return self.accepted and (key == self.best or key in self.members)
+
+
+#: Per-actuator causes that are also tried on every actuator at once (a *shared* candidate,
+#: ``cause[1,2,3,4]``): a stage's stacks are alike, and hysteresis is a property of the stack's
+#: material, so a stage with one loop often has one on each actuator. One at a time, the first
+#: loop accepted stands in for all of them (each alone explains most of the others' effect,
+#: fitted wider than it is) and the others no longer pay; together they do.
+SHARED_CAUSES = ("hysteresis",)
+
+
+def _shared_groups(remaining: Sequence[CauseSpec]) -> dict:
+    """The shared candidates: each cause of :data:`SHARED_CAUSES` on every actuator still in play
+    (two or more), keyed ``cause[i,j,...]``."""
+    out: dict[str, tuple[CauseSpec, ...]] = {}
+    for name in SHARED_CAUSES:
+        members = tuple(s for s in remaining if s.cause == name and s.actuator is not None)
+        if len(members) >= 2:
+            out[f"{name}[{','.join(str(m.actuator) for m in members)}]"] = members
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,6 +206,15 @@ def select_mean_causes(
             if f.unphysical:  # lifts a ball though no cause of the set may: not these causes
                 continue
             fits[s.key] = f
+        groups = _shared_groups(remaining)
+        for key, members in groups.items():
+            theta0 = np.concatenate([current.theta, *(m.start_from(base) for m in members)])
+            f = fit_mean(stage, base, [*accepted, *members], data, theta0=theta0, nuisance0=current.nuisance,
+                         weights=weights)
+            if progress is not None:
+                progress(key)
+            if not f.unphysical:
+                fits[key] = f
         if not fits:
             steps.append(Step(current, {}, None, 1.0, structure, False))
             stop = "no candidate fits without lifting a ball"
@@ -190,14 +223,21 @@ def select_mean_causes(
         best = fits[best_key]
         p = _lr_p(current, best, len(fits))
         ok = best.bic < current.bic and p < alpha
-        equiv, chosen_info = _equivalents(fits, best_key) if ok else (), None
+        single = {k: f for k, f in fits.items() if k not in groups}
+        equiv, chosen_info = _equivalents(single, best_key) if ok and best_key in single else (), None
         if equiv:
-            best_key, equiv, p, chosen_info = _choose(stage, current, fits, best_key, equiv, p, alpha)
+            best_key, equiv, p, chosen_info = _choose(stage, current, single, best_key, equiv, p, alpha)
             best = fits[best_key]
-        steps.append(Step(current, fits, best_key, p, structure, ok, equiv, chosen_info))
+        members = tuple(m.key for m in groups.get(best_key, ()))
+        steps.append(Step(current, fits, best_key, p, structure, ok, equiv, chosen_info, members))
         if not ok:
             stop = "residual at the noise level" if structure.p_value >= alpha else "nothing pays"
             break
+        if members:  # the cause on every actuator still in play at once
+            accepted.extend(groups[best_key])
+            excluded |= set(members)
+            current = best
+            continue
         spec = next(s for s in remaining if s.key == best_key)
         accepted.append(spec)
         excluded |= {best_key, *equiv}
@@ -238,7 +278,7 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
     out: list[dict] = []
     split = final.split()
     for j, (spec, theta, se) in enumerate(split):
-        step = next(s for s in steps if s.best == spec.key and s.accepted)
+        step = next(s for s in steps if s.accepts(spec.key))
         cur_bic = step.current.bic
         eq = []
         for k in step.equivalent:
@@ -247,11 +287,11 @@ def _entries(final: MeanFit, steps: list[Step], accepted: list[CauseSpec]) -> li
             eq.append(cause_entry(s2, th2, se2, delta_bic=float(f.bic - cur_bic),
                                   rank_deficient=bool(f.rank_deficient),
                                   **({"nuisance": {n: float(v) for n, v in f.nuisance.items()}} if f.nuisance else {})))
-        out.append(cause_entry(spec, theta, se, delta_bic=float(step.fits[spec.key].bic - cur_bic),
+        out.append(cause_entry(spec, theta, se, delta_bic=float(step.fits[step.best].bic - cur_bic),
                                p_value=float(step.p_value), rank_deficient=bool(final.rank_deficient),
                                equivalent=eq, accepted=True, step=steps.index(step) + 1,
                                **({"chosen": step.chosen} if step.chosen else {}),
-                               nuisance={k: float(v) for k, v in step.fits[spec.key].nuisance.items()}))
+                               nuisance={k: float(v) for k, v in step.fits[step.best].nuisance.items()}))
     # the other candidates of the first step, against the configured model, best first
     first = steps[0]
     if first.fits:
