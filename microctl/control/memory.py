@@ -153,6 +153,8 @@ class MemoryCompensated:
         -------
         SequenceResult
             Steps as :meth:`solve` returns them (``predicted_um`` with the loop, ``hysteresis_um``).
+            Each step's ``state`` is the inner plan's: its t is the previous step's prediction
+            without the loop (the residual GP's t_prev input is off by that step's shift).
         """
         t0 = time.perf_counter()
         targets = np.asarray(targets_um, dtype=float).reshape(-1)

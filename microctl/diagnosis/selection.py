@@ -103,13 +103,21 @@ class Step:
 SHARED_CAUSES = ("hysteresis",)
 
 
-def _shared_groups(remaining: Sequence[CauseSpec]) -> dict:
+#: The shared candidate is fitted only when one of its members is among this many best single
+#: candidates of the step (by BIC): elsewhere the data show no loop, and the joint fit of every
+#: actuator's loop is the most expensive fit of a step.
+SHARED_TOP = 3
+
+
+def _shared_groups(remaining: Sequence[CauseSpec], fits: dict) -> dict:
     """The shared candidates: each cause of :data:`SHARED_CAUSES` on every actuator still in play
-    (two or more), keyed ``cause[i,j,...]``."""
+    (two or more), keyed ``cause[i,j,...]``, when one of them is among the step's
+    :data:`SHARED_TOP` best single fits."""
+    top = set(sorted(fits, key=lambda k: fits[k].bic)[:SHARED_TOP])
     out: dict[str, tuple[CauseSpec, ...]] = {}
     for name in SHARED_CAUSES:
         members = tuple(s for s in remaining if s.cause == name and s.actuator is not None)
-        if len(members) >= 2:
+        if len(members) >= 2 and any(m.key in top for m in members):
             out[f"{name}[{','.join(str(m.actuator) for m in members)}]"] = members
     return out
 
@@ -206,7 +214,7 @@ def select_mean_causes(
             if f.unphysical:  # lifts a ball though no cause of the set may: not these causes
                 continue
             fits[s.key] = f
-        groups = _shared_groups(remaining)
+        groups = _shared_groups(remaining, fits)
         for key, members in groups.items():
             theta0 = np.concatenate([current.theta, *(m.start_from(base) for m in members)])
             f = fit_mean(stage, base, [*accepted, *members], data, theta0=theta0, nuisance0=current.nuisance,
