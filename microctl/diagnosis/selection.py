@@ -204,25 +204,7 @@ def select_mean_causes(
             steps.append(Step(current, {}, None, 1.0, structure, False))
             stop = "no candidates left" if not remaining else f"{MAX_CAUSES} causes accepted"
             break
-        fits: dict[str, MeanFit] = {}
-        for s in remaining:
-            theta0 = np.concatenate([current.theta, s.start_from(base)])  # warm start
-            f = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, nuisance0=current.nuisance,
-                         weights=weights)
-            if progress is not None:
-                progress(s.key)
-            if f.unphysical:  # lifts a ball though no cause of the set may: not these causes
-                continue
-            fits[s.key] = f
-        groups = _shared_groups(remaining, fits)
-        for key, members in groups.items():
-            theta0 = np.concatenate([current.theta, *(m.start_from(base) for m in members)])
-            f = fit_mean(stage, base, [*accepted, *members], data, theta0=theta0, nuisance0=current.nuisance,
-                         weights=weights)
-            if progress is not None:
-                progress(key)
-            if not f.unphysical:
-                fits[key] = f
+        fits, groups = _fit_candidates(stage, base, accepted, remaining, current, data, weights, progress)
         if not fits:
             steps.append(Step(current, {}, None, 1.0, structure, False))
             stop = "no candidate fits without lifting a ball"
@@ -252,6 +234,33 @@ def select_mean_causes(
         current = best
     final = current
     return Selection(baseline, final, steps, accepted, _entries(final, steps, accepted), stop, tuple(specs))
+
+
+def _fit_candidates(stage: Stage, base: Effects, accepted: list, remaining: list, current: MeanFit,
+                    data: DiagnosisData, weights, progress) -> tuple[dict, dict]:
+    """One step's fits: every remaining candidate jointly with the accepted causes (warm-started),
+    then the shared candidates (:func:`_shared_groups`). Fits that lift a ball without a cause
+    that may are left out. Returns (fits by key, shared groups by key)."""
+    fits: dict[str, MeanFit] = {}
+    for s in remaining:
+        theta0 = np.concatenate([current.theta, s.start_from(base)])  # warm start
+        f = fit_mean(stage, base, [*accepted, s], data, theta0=theta0, nuisance0=current.nuisance,
+                     weights=weights)
+        if progress is not None:
+            progress(s.key)
+        if f.unphysical:  # lifts a ball though no cause of the set may: not these causes
+            continue
+        fits[s.key] = f
+    groups = _shared_groups(remaining, fits)
+    for key, members in groups.items():
+        theta0 = np.concatenate([current.theta, *(m.start_from(base) for m in members)])
+        f = fit_mean(stage, base, [*accepted, *members], data, theta0=theta0, nuisance0=current.nuisance,
+                     weights=weights)
+        if progress is not None:
+            progress(key)
+        if not f.unphysical:
+            fits[key] = f
+    return fits, groups
 
 
 def _equivalents(fits: dict, best_key: str) -> tuple:
