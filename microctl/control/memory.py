@@ -85,9 +85,7 @@ class MemoryCompensated:
 
     def shift_um(self, z: np.ndarray, u: np.ndarray) -> float:
         """The loop's reading shift σ at pose u (n_p,) from the play states z, µm."""
-        mem = self.afm.memory
-        d = float(self.afm.w_pred @ u)
-        return float(mem.reading_shift(d, mem.displacement_shift(z, self.afm.K @ u)))
+        return self.afm.memory.shift_at(z, self.afm.K @ u)
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *, u_init: np.ndarray | None = None,
               memory: np.ndarray | None = None) -> ControlResult:

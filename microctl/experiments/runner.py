@@ -303,7 +303,7 @@ def _absolute_loop_shifts(afm, U: np.ndarray) -> np.ndarray:
     z, out, zero_q = mem.zero(), np.empty(len(U)), np.zeros(afm.n_q)
     for i, u in enumerate(U):
         z = mem.step(z, zero_q)
-        out[i] = mem.reading_shift(afm.w_pred @ u, mem.displacement_shift(z, afm.K @ u))
+        out[i] = mem.shift_at(z, afm.K @ u)
         z = mem.step(z, afm.K @ u)
     return out
 

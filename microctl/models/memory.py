@@ -135,3 +135,9 @@ class ActuatorMemory:
     def reading_shift(self, d: np.ndarray, d_h: np.ndarray) -> np.ndarray:
         """How much the reading moves when the loop adds ``d_h`` to the AFM's displacement ``d``, µm."""
         return self.sensor.forward(np.asarray(d) + d_h) - self.sensor.forward(np.asarray(d))
+
+    def shift_at(self, z_before: np.ndarray | None, q: np.ndarray) -> float:
+        """The loop's reading shift at commands q (n_q,) from the play states before the move, µm
+        (the AFM's displacement there is c . q, since w_pred = c K)."""
+        q = np.asarray(q, dtype=float).reshape(-1)
+        return float(self.reading_shift(float(self.c @ q), self.displacement_shift(z_before, q)))
