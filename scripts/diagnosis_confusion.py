@@ -155,7 +155,7 @@ def loops_report(cases: Cases, n_loops: int, diagnose, misses: list[str]) -> Non
         rng, truth = cases.stage("off")
         n, u = cases.moves("off")
         truth, info = ind.plant_history(truth, "hysteresis", rng)
-        rep = diagnose(to_data(ind.run(truth, u, rng)), k)
+        rep = diagnose(to_data(ind.run(truth, u, rng)), k, label=f"loops {k}")
         want = sorted(_key("hysteresis", a) for a in info["actuators"])
         good = sorted(vocabulary_named(rep)) == want and "unexplained" not in rep["accepted"]["mean"]
         ok += good
@@ -198,10 +198,12 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     times = []
 
-    def diagnose(data, k, set_aside=None):
+    def diagnose(data, k, set_aside=None, label=""):
         t0 = time.perf_counter()
         rep = run_diagnosis(cfg, data, seed=k, gp=False, set_aside=set_aside).report
-        times.append((data.n, time.perf_counter() - t0))
+        dt = time.perf_counter() - t0
+        times.append((data.n, dt, label or f"case {k}"))
+        print(f"    ({label or k}: n={data.n}, {dt:.1f} s)", file=sys.stderr, flush=True)
         return rep
 
     print(f"Independent stage generator (tests/independent_stage.py), geometry {Path(args.config).name}, "
@@ -218,7 +220,7 @@ def main(argv=None) -> int:
         rng, truth = cases.stage("vocab")
         truth, planted = ind.plant(truth, name, rng)
         n, u = cases.moves("vocab")
-        rep = diagnose(to_data(ind.run(truth, u, rng)), k)
+        rep = diagnose(to_data(ind.run(truth, u, rng)), k, label=f"vocab {k} {name}")
         first, cls = named_class(rep)
         want = _key(planted["cause"], planted["actuator"])
         if planted["cause"] == "actuator_friction":
@@ -278,7 +280,7 @@ def main(argv=None) -> int:
     for k in range(args.clean):
         rng, truth = cases.stage("clean")
         n, u = cases.moves("clean")
-        rep = diagnose(to_data(ind.run(truth, u, rng)), k)
+        rep = diagnose(to_data(ind.run(truth, u, rng)), k, label=f"clean {k}")
         bad = rep["discrepancy"]["significant"] or bool(rep["accepted"]["mean"]) or rep["accepted"]["noise"] != [
             "homoscedastic"]
         fp += bad
@@ -298,7 +300,7 @@ def main(argv=None) -> int:
         rng, truth = cases.stage("off")
         n, u = cases.moves("off")
         truth, info = ind.plant_off_vocabulary(truth, shape, rng, n)
-        rep = diagnose(to_data(ind.run(truth, u, rng)), k)
+        rep = diagnose(to_data(ind.run(truth, u, rng)), k, label=f"off {k} {shape}")
         vocab = vocabulary_named(rep)
         unexpl = "unexplained" in rep["accepted"]["mean"]
         off[shape]["cases"] += 1
@@ -342,7 +344,8 @@ def main(argv=None) -> int:
                 path = Path(tmp) / f"{k}_{tag}.csv"
                 r.write_log(path, cfg.stage.actuator_names, cfg.stage.dof, cfg.stage.tool.name)
                 logs.append(read_for_diagnosis(path, cfg.stage)[:2])  # as `microctl diagnose` reads it
-            rep_clean, rep_bad = diagnose(logs[0][0], k, logs[0][1]), diagnose(logs[1][0], k, logs[1][1])
+            rep_clean = diagnose(logs[0][0], k, logs[0][1], label=f"corrupt {k} (clean copy)")
+            rep_bad = diagnose(logs[1][0], k, logs[1][1], label=f"corrupt {k}")
             want_lines = sorted(r + 2 for r, _, _ in cells)  # CSV line numbers (header = line 1)
             got_lines = sorted(o["line"] for o in rep_bad["outliers"]["rows"])
             r_ok = got_lines == want_lines
@@ -381,10 +384,12 @@ def main(argv=None) -> int:
             timing.append((kind or "clean", rc, time.perf_counter() - t0))
     total = time.perf_counter() - t_all
 
-    ts = np.array([t for _, t in times])
-    big = [t for n, t in times if n >= 250]
+    ts = np.array([t for _, t, _ in times])
+    big = [t for n, t, _ in times if n >= 250]
     print(f"5. Timing: run_diagnosis without the GP gain, per data set: median {np.median(ts):.1f} s, max {ts.max():.1f} s; "
           f"n >= 250: median {np.median(big) if big else float('nan'):.1f} s, max {max(big) if big else float('nan'):.1f} s")
+    slowest = sorted(times, key=lambda x: -x[1])[:3]
+    print("   slowest: " + "; ".join(f"{label} (n = {n}) {t:.1f} s" for n, t, label in slowest))
     for kind, rc, t in timing:
         print(f"   microctl diagnose (GP gain, figures) on 300 moves, {kind}: {t:.1f} s (exit {rc}) (bar <= 60 s)")
     print(f"total {total:.0f} s")
