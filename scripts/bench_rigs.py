@@ -109,6 +109,9 @@ METHODS = {
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    # the default without the least-motion rule (microctl.control.credible): eq. 4's optimum always,
+    # the default before issue 18's least-motion change
+    "eq4": Method("eq4", "covering", ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),
     # the default without the mean correction's posterior variance in the objective (the
     # previous release's objective; the default adds it since issue 18)
     "noise_only": Method("noise_only", "covering", ResidualModelSettings(), ControllerSettings(epistemic=False)),

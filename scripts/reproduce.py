@@ -19,9 +19,10 @@ Sections (``--only`` picks some; default: all, in this order):
     the paper-scale rig, its Table II and, per seed offset, whether its AFM errors keep the
     paper's size and grow with the target.
 ``bench_rigs``
-    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default
+    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,eq4
     --seed-sets 10 --jobs 2`` (the main job over 10 seed sets, and 12 rigs of every noise family
-    of scripts/rig_families.py at 125 and 200 training moves; ``docs/generated/bench_rigs.md``).
+    of scripts/rig_families.py at 125 and 200 training moves, with the default controller and
+    without its least-motion rule; ``docs/generated/bench_rigs.md``).
     The longest (about an hour on a loaded 2-core machine); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side.
 ``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``
@@ -57,7 +58,7 @@ PAPER_SCALE = "configs/experiments/paper_scale.yaml"
 #: Seed offsets the paper-scale rig is also measured on (besides the shipped seeds, offset 0).
 PAPER_SCALE_OFFSETS = tuple(10_000 * k for k in range(1, 10))
 #: The bench_rigs run the docs quote (``--jobs`` is taken from reproduce.py's own option).
-BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods", "default",
+BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods", "default,eq4",
                    "--seed-sets", "10")
 #: Captured-output benchmarks: section -> (script, arguments).
 CAPTURED = {

@@ -33,11 +33,13 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import casadi as ca
 import numpy as np
 
 from microctl.control.base import BaseController, unreachable
+from microctl.control.credible import Alternatives, expected_error, prob_better
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
 from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
@@ -312,15 +314,74 @@ class OptimalController(EAFMController):
         settings = settings or ControllerSettings()
         super().__init__(eafm, settings.objective(), settings, name="eafm")
         self.baseline = baseline
+        self._least: EAFMMeanController | None = None
+        self._least_afm: AFMController | None = None
+        self._alternatives: Alternatives | None = None
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
               u_init: np.ndarray | None = None) -> ControlResult:
         """As :meth:`EAFMController.solve`; with a ``baseline`` controller, the result also says
-        whether the chosen pose is credibly quieter than the baseline's (``vs_baseline``)."""
+        whether the chosen pose is credibly quieter than the baseline's (``vs_baseline``).
+
+        With ``settings.prefer_least_motion`` the smallest motion onto the EAFM-mean surface is
+        returned unless eq. 4's optimum is credibly better (:mod:`microctl.control.credible`);
+        ``choice`` of the result says which was returned and why.
+        """
         res = super().solve(target_um, state, u_init=u_init)
+        if self.settings.prefer_least_motion:
+            res = self._unless_credible(res, u_init)
         if self.baseline is None:
             return res
         return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)
+
+    def _least_motion(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult | None:
+        """The smallest motion onto the EAFM-mean surface for ``res``'s target and state (None if
+        none passes the checks). ``||K u - q_prev||^2`` is convex and the surface is the AFM's plane
+        bent by f, so one polish from the AFM's least motion (a QP) finds it; the EAFM-mean
+        controller's global seeding runs only when that polish fails."""
+        if self._least is None:
+            self._least = EAFMMeanController(self.eafm, self.settings)
+            self._least_afm = AFMController(self.afm, self.settings)
+        t0 = time.perf_counter()
+        try:  # the AFM cannot reach every target the EAFM mean can
+            start = self._least_afm.solve(res.target_um, res.state).u
+        except SolveError:
+            start = None
+        if start is not None:
+            with single_thread_blas():
+                least = self._least._polish(res.state, res.target_um, [start], t0)
+            if least is not None:
+                return least
+        try:
+            least = self._least.solve(res.target_um, res.state, u_init=u_init)
+        except SolveError:
+            return None
+        return least if least.success else None
+
+    def _unless_credible(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult:
+        """``res`` if its pose is credibly better than the least motion's, else the least motion
+        (reported as this controller's result: eq. 4's objective at it)."""
+        t0 = time.perf_counter() - res.solve_time_s
+        least = self._least_motion(res, u_init)
+        if least is None:
+            return res
+        if self._alternatives is None:
+            self._alternatives = Alternatives(self.eafm)
+        with single_thread_blas():
+            p = prob_better(self.eafm, res.state, res.u, least.u)
+            r_opt, r_least = expected_error(self.eafm, res.state, np.vstack([res.u, least.u]))
+            excess = self._alternatives.expected_excess(res.state, res.u, least.u)
+        if p >= self.settings.credible_level and r_opt + excess < r_least:
+            return replace(res, choice=f"optimum: credibly better than the least motion (P = {p:.3f}; "
+                                       f"{r_opt + excess:.3g} vs {r_least:.3g} µm²)",
+                           solve_time_s=time.perf_counter() - t0)
+        self._last_attempts = {"status": [least.status], "iter": res.iterations + least.iterations,
+                               "n": res.n_starts + least.n_starts}
+        why = (f"better with P = {p:.3f} < {self.settings.credible_level:g}" if p < self.settings.credible_level
+               else f"not better once the sources the data did not select are weighed in: "
+                    f"{r_opt + excess:.3g} vs {r_least:.3g} µm²")
+        out = self._result(res.state, res.target_um, least.u, least.status, True, t0)
+        return replace(out, choice=f"least motion: eq. 4's optimum {why}")
 
 
 class EAFMMeanController(EAFMController):

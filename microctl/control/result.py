@@ -72,6 +72,11 @@ class ControlResult:
     hysteresis_um : float
         The hysteresis loop's part of ``predicted_um``: the reading shift the play states before
         the move give at u (:mod:`microctl.control.memory`); 0 without hysteresis corrections.
+    choice : str
+        The optimal controller's least-motion rule (``ControllerSettings.prefer_least_motion``,
+        :mod:`microctl.control.credible`): which command was returned and why, e.g. ``"least
+        motion: eq. 4's optimum better with P = 0.62 < 0.95"``; empty when the rule is off or for
+        the other controllers.
     vs_baseline : NoiseComparison or None
         For the optimal controller given a baseline: is u credibly quieter than the
         baseline's command from the same state?
@@ -97,6 +102,7 @@ class ControlResult:
     noise_upper_std_um: float = float("nan")
     bias_std_um: float = float("nan")
     hysteresis_um: float = 0.0
+    choice: str = ""
     vs_baseline: "NoiseComparison | None" = None
     baseline: "ControlResult | None" = None
 
@@ -110,7 +116,7 @@ class ControlResult:
             "iterations": self.iterations, "solve_time_s": self.solve_time_s, "success": self.success,
             "constraint_residual_um": self.constraint_residual, "n_starts": self.n_starts,
             "noise_std_um": self.noise_std_um, "noise_upper_std_um": self.noise_upper_std_um,
-            "bias_std_um": self.bias_std_um, "hysteresis_um": self.hysteresis_um,
+            "bias_std_um": self.bias_std_um, "hysteresis_um": self.hysteresis_um, "choice": self.choice,
             "vs_baseline": None if self.vs_baseline is None else self.vs_baseline.to_dict(),
         }
 

@@ -32,6 +32,13 @@ class ControllerSettings:
     credible_level : float
         Probability above which the chosen pose counts as credibly quieter than the AFM
         baseline's (:func:`~microctl.control.baseline.compare_noise`).
+    prefer_least_motion : bool
+        The optimal controller returns the smallest actuator motion onto the EAFM-mean surface
+        (:class:`~microctl.control.controller.EAFMMeanController`) unless eq. 4's optimum is
+        credibly better: its expected squared error (f's variance plus the noise variance) lower
+        with posterior probability >= ``credible_level``, and still lower once the noise sources
+        the data did not select are weighed in (:mod:`microctl.control.credible`). Default true;
+        false: eq. 4's optimum always (the paper's rule).
     grid : int
         Grid points per null-space axis of the global seeding (``grid**(n_p-1)`` points).
     newton_steps : int
@@ -65,6 +72,7 @@ class ControllerSettings:
     kappa: float = same_setting(NoiseVariance, "kappa")
     epistemic: bool = same_setting(NoiseVariance, "epistemic")
     credible_level: float = setting(0.95, lo=0.5, hi=1.0, lo_open=True)
+    prefer_least_motion: bool = setting(True)
     grid: int = setting(15, lo=2, hi=201)
     newton_steps: int = setting(4, lo=1, hi=50)
     n_polish: int = setting(2, lo=1, hi=50)

@@ -46,7 +46,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, stats
 
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.models.afm import AnalyticForwardModel
@@ -54,7 +53,7 @@ from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection"]
+__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives"]
 
 #: Residual draws under the current fit for the max-statistic p-values, and their seed; the grid
 #: of a candidate's share (times the mean current variance) its profiled gain is maximised over.
@@ -167,6 +166,49 @@ class Selection:
     p_values: tuple[float, ...] = ()
 
 
+def alternatives(residual: np.ndarray, variance: np.ndarray, Phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each candidate source added alone to the fitted noise model, at its best size.
+
+    For candidate j the variance ``a (v + rho phi_j)`` (v the fitted model's noise variance at
+    the training moves, its shape held, with a free scale a: closed-form ``a = mean(r^2 / (v +
+    rho phi_j))``, as :func:`_profile_gains`) is profiled over rho >= 0 on the grid
+    :data:`PROFILE_RATIOS` times mean(v) / mean(phi_j) (and rho = 0).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+        Residual of the mean correction at the training moves.
+    variance : ndarray, shape (n,)
+        The fitted noise variance there (µm²).
+    Phi : ndarray, shape (n, P)
+        The candidates at the training moves (non-negative).
+
+    Returns
+    -------
+    coef : ndarray, shape (P,)
+        The source's coefficient ``a rho`` at the best rho (µm² per unit of phi_j; 0 when the
+        data prefer none).
+    gain : ndarray, shape (P,)
+        Its log-likelihood gain over rho = 0 (nats, >= 0).
+    """
+    r2 = np.asarray(residual, dtype=float) ** 2
+    v = np.asarray(variance, dtype=float)
+    Phi = np.asarray(Phi, dtype=float)
+    n = r2.size
+    unit = float(np.mean(v)) / np.maximum(Phi.mean(axis=0), 1e-300)  # (P,)
+    grid = np.concatenate([[0.0], PROFILE_RATIOS])
+    ll = np.empty((grid.size, Phi.shape[1]))
+    coef = np.empty_like(ll)
+    for k, rho in enumerate(grid):
+        w = v[:, None] + rho * unit[None, :] * Phi
+        a = np.mean(r2[:, None] / w, axis=0)
+        ll[k] = -0.5 * (n * np.log(a) + np.sum(np.log(w), axis=0))
+        coef[k] = a * rho * unit
+    best = np.argmax(ll, axis=0)
+    cols = np.arange(Phi.shape[1])
+    return coef[best, cols], ll[best, cols] - ll[0]
+
+
 def _fit_variance(r2: np.ndarray, Phi: np.ndarray) -> tuple[float, np.ndarray]:
     """Max over c >= 0 of sum -1/2 (log v + r^2 / v), v = c_0 + Phi c (c_0 > 0). Returns the
     log-likelihood (without the 2 pi constant) and c = (c_0, c_1..)."""
@@ -181,6 +223,7 @@ def _fit_variance(r2: np.ndarray, Phi: np.ndarray) -> tuple[float, np.ndarray]:
         return -ll, -g
 
     c0 = np.concatenate([[float(np.mean(r2))], np.full(p, 1e-3 * float(np.mean(r2)))])
+    from scipy import optimize  # here, not at import: `microctl solve` reads the candidates without scipy
     res = optimize.minimize(f, c0, jac=True, method="L-BFGS-B",
                             bounds=[(floor, None)] + [(0.0, None)] * p, options={"maxiter": 500})
     return -float(res.fun), res.x
@@ -212,6 +255,7 @@ def _fit_tilt(r2: np.ndarray, Phi: np.ndarray, Z: np.ndarray) -> tuple[float, np
     for w_init in (w0, 0.5 * w0):
         th0 = np.concatenate([[0.5 * scale], np.full(p, 1e-3 * scale), [0.5 * scale / max(np.mean(np.exp(Z @ w_init)), 1e-12)],
                               w_init])
+        from scipy import optimize  # here, not at import: `microctl solve` reads the candidates without scipy
         res = optimize.minimize(f, th0, jac=True, method="L-BFGS-B",
                                 bounds=[(floor, None)] + [(0.0, None)] * (p + 1)
                                 + [(-TILT_MAX_SLOPE, TILT_MAX_SLOPE)] * k,
@@ -388,6 +432,7 @@ def _tilt_option(r2: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: i
     n, k = Z.shape
     lt, ct, w = _fit_tilt(r2, Phi, Z)
     g = lt - ll
+    from scipy import stats  # here, not at import: `microctl solve` reads the candidates without scipy
     return (float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g, 0.5 * (k + 1) * math.log(n), "tilt", ct, w)
 
 #: the tilt's slope bound per standardised pose coordinate: its variance grows at most e^4-fold

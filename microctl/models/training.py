@@ -24,7 +24,7 @@ from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import bind_to_stage
-from microctl.models.noise_dictionary import candidate_features, select_features
+from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
 from microctl.util.fields import setting, validate_settings
 
 __all__ = ["AUTO_SPARSE_ROWS", "GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
@@ -326,6 +326,13 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
                               [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
                               max_time, warm_start=model if sparse else None)
+    # every candidate added alone at its best size, with its likelihood gain: the controller's
+    # least-motion rule (microctl.control.credible) weighs these alternatives by their evidence
+    pred = model.predict(data.X)
+    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(data.X))
+    coef = coef / np.asarray(cands.scale, dtype=float)  # per unit of the candidate at scale 1
+    record["alternatives"] = {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
+    record["n"] = int(len(data.y))
     return replace(model, info={**model.info, "noise_selection": record})
 
 

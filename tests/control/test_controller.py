@@ -50,7 +50,7 @@ def eafm(afm):
 
 @pytest.fixture(scope="module")
 def opt(eafm):
-    return OptimalController(eafm)
+    return OptimalController(eafm, ControllerSettings(prefer_least_motion=False))  # eq. 4 itself
 
 
 def _states(afm, m, seed=0):
@@ -159,7 +159,7 @@ def _fd_grad(f, u, h):
 @pytest.mark.parametrize("r_e,epistemic", [("noise_median", True), ("noise_mean", True),
                                             ("noise_quantile", True), ("noise_quantile", False)])
 def test_first_order_optimality(afm, eafm, r_e, epistemic):
-    opt_ = OptimalController(eafm, ControllerSettings(r_e=r_e, epistemic=epistemic))
+    opt_ = OptimalController(eafm, ControllerSettings(r_e=r_e, epistemic=epistemic, prefer_least_motion=False))
     rng = np.random.default_rng(4)
     for s, target in zip(_states(afm, 6, seed=5), rng.uniform(-20, 50, 6)):
         r = opt_.solve(target, s)
@@ -225,7 +225,7 @@ def test_unreachable_target_gives_interval(afm, eafm, opt):
 
 def test_solver_built_once_per_model(afm, eafm, nlpsol_calls):
     # IPOPT alone: built at the first solve, reused after
-    ctl = OptimalController(eafm, ControllerSettings(fast_path=False))
+    ctl = OptimalController(eafm, ControllerSettings(fast_path=False, prefer_least_motion=False))
     assert nlpsol_calls == [] and ctl.n_builds == 0
     for s, t in zip(_states(afm, 5, seed=7), (0.0, 10.0, 20.0, 30.0, -10.0)):
         ctl.solve(t, s)
@@ -319,7 +319,7 @@ def test_a_registered_r_e_summary_is_a_setting_and_is_solved(afm, eafm, second_m
     prediction; the sequence controller solves it too (each move on its target)."""
     from microctl.control.sequence import SequenceController
 
-    settings = ControllerSettings(r_e=second_moment, epistemic=False)
+    settings = ControllerSettings(r_e=second_moment, epistemic=False, prefer_least_motion=False)
     assert settings.objective().needs == ("t_mean", "g_mean", "g_var")
 
     def r_e(s, v):

@@ -247,7 +247,7 @@ def test_one_target_equals_the_optimal_controller(afm, r_e):
     """T = 1 is the paper's eq. 4: the same command as OptimalController on a non-convex landscape,
     cold and warm-started."""
     eafm = EAFM(afm, wells_model(afm))
-    settings = ControllerSettings(r_e=r_e, epistemic=False)
+    settings = ControllerSettings(r_e=r_e, epistemic=False, prefer_least_motion=False)
     seq, opt = SequenceController(eafm, settings), OptimalController(eafm, settings)
     rng = np.random.default_rng(7)
     states = np.column_stack([rng.uniform(0, 30, 6), rng.uniform(0, 32, (6, afm.n_q))])

@@ -1,0 +1,151 @@
+"""Is one pose credibly better than another in expected squared error? (the least-motion rule)
+
+The expected squared error of a move about its target is ``r = f_var + exp(g)`` (the mean
+correction's posterior variance plus the noise variance; eq. 4's r_e with ``epistemic``). The
+model knows f_var at a pose; g, the log noise variance, it knows only as a Gaussian posterior
+(notes/vhgpr.md, prediction; its joint at two poses is :meth:`microctl.models.eafm.EAFM.g_joint`,
+the prior mean's parameter covariance included). So "pose a is better than pose b" is an
+event with a posterior probability,
+
+    P(f_var_a + exp(g_a) < f_var_b + exp(g_b)),   (g_a, g_b) ~ N(mean, cov),
+
+computed here by Monte Carlo with fixed common draws (:data:`DRAWS`, :data:`SEED`: the same
+call gives the same answer). With equal f_var it is ``Phi((mean_b - mean_a) / sd)``, the
+probability :func:`~microctl.control.baseline.compare_noise` gives in closed form (tested).
+
+That probability is conditional on the noise model the data selected. A source the selection
+did not take can still be there at a size the data cannot rule out (a log of 125 moves does not
+see a creep of 0.1 µm on one actuator), and g's posterior then says "flat, and certain". So the
+comparison also averages over the alternatives: each candidate source j of the stage's
+dictionary (:mod:`microctl.models.noise_dictionary`) added alone at its best size c_j, with
+the likelihood gain G_j it had on the training residuals (``info["noise_selection"]
+["alternatives"]`` of the model, computed at training; :func:`~microctl.models.noise_dictionary.
+alternatives`). With BIC weights ``w_j = exp(G_j - log(n) / 2)`` against 1 for the selected
+model, the expected extra squared error of pose a over pose b is
+
+    E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j),
+
+and the optimum a counts as credibly better than the least motion b only if the probability
+above reaches ``credible_level`` *and* ``r_a + E < r_b`` (:class:`Alternatives`). A model
+file written before the alternatives were stored has no such term.
+
+Why the controller asks (``ControllerSettings.prefer_least_motion``): where the noise model has
+no evidence that one redundant pose is quieter than another, eq. 4's optimum is decided by which
+pose the training data cover best (g's and f's posterior variance are smallest there), and that
+can be a pose far from where the actuators are, a long move for a gain the model itself cannot
+tell from zero. Nearly every piezo scatter source that depends on the move grows with the
+distance moved (stick-slip, creep, stiction past breakaway, the turning point of a hysteresis
+loop), so the smallest motion onto the EAFM-mean surface is the safe default, and the optimum
+is taken only when the model is credible that it is better.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from microctl.gp.shaped_features import ShapedFeatures
+from microctl.models.eafm import EAFM
+from microctl.models.noise_dictionary import candidate_features
+
+__all__ = ["DRAWS", "SEED", "prob_lower", "prob_better", "expected_error", "Alternatives"]
+
+#: Monte Carlo draws of (g_a, g_b) and their seed (standard error of a probability <= 0.008).
+DRAWS, SEED = 4096, 20_261_126
+_Z = np.random.default_rng(SEED).standard_normal((DRAWS, 2))
+
+
+def prob_lower(mean: np.ndarray, cov: np.ndarray, f_var: np.ndarray) -> float:
+    """``P(f_var[0] + exp(g[0]) < f_var[1] + exp(g[1]))`` for ``g ~ N(mean, cov)``.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (2,)
+        Posterior mean of the log noise variance at the two poses.
+    cov : ndarray, shape (2, 2)
+        Its posterior covariance (symmetric positive semi-definite; round-off below zero is
+        clipped).
+    f_var : ndarray, shape (2,)
+        The mean correction's posterior variance at the two poses, µm².
+
+    Returns
+    -------
+    float
+        In [0, 1]; ties count as not lower.
+    """
+    mean = np.asarray(mean, dtype=float).reshape(2)
+    cov = np.asarray(cov, dtype=float).reshape(2, 2)
+    f_var = np.asarray(f_var, dtype=float).reshape(2)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    root = V * np.sqrt(np.clip(w, 0.0, None))  # cov = root root^T
+    g = mean + _Z @ root.T
+    r = f_var + np.exp(g)
+    return float(np.mean(r[:, 0] < r[:, 1]))
+
+
+def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
+    """Posterior probability that pose ``u_a`` has a lower expected squared error than ``u_b``.
+
+    Parameters
+    ----------
+    eafm : EAFM
+    state : ndarray, shape (n_s,)
+        The state both moves start from.
+    u_a, u_b : ndarray, shape (n_p,)
+    """
+    s = np.asarray(state, dtype=float)
+    U = np.vstack([np.asarray(u_a, dtype=float), np.asarray(u_b, dtype=float)])
+    mean, cov = eafm.g_joint(s, U)
+    return prob_lower(mean, cov, eafm.predict(s, U).f_var)
+
+
+def expected_error(eafm: EAFM, state: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """The posterior expected squared error about the target, ``f_var + E[exp(g)]``, at the rows
+    of U (shape (m, n_p)) from ``state``, µm², shape (m,)."""
+    p = eafm.predict(np.asarray(state, dtype=float), np.atleast_2d(U))
+    return p.f_var + np.exp(p.g_mean + 0.5 * p.g_var)
+
+
+class Alternatives:
+    """The stage's candidate noise sources, each added alone at its best size, weighed by evidence.
+
+    Parameters
+    ----------
+    eafm : EAFM
+        Its model's ``info["noise_selection"]["alternatives"]`` (name -> [coefficient per unit
+        of the candidate at scale 1, log-likelihood gain in nats]) and ``["n"]`` (training
+        moves) give the alternatives; the candidates of
+        :func:`~microctl.models.noise_dictionary.candidate_features` for ``eafm.afm`` with a
+        stored entry are used (none: :attr:`available` is False).
+    """
+
+    def __init__(self, eafm: EAFM):
+        self.eafm = eafm
+        record = (eafm.model.info or {}).get("noise_selection", {})
+        alts = record.get("alternatives") or {}
+        cands = candidate_features(eafm.afm)
+        idx = [j for j, nm in enumerate(cands.names) if nm in alts]
+        self.features: ShapedFeatures | None = cands.subset(idx) if idx else None
+        coef = np.array([float(alts[cands.names[j]][0]) for j in idx])
+        gain = np.array([float(alts[cands.names[j]][1]) for j in idx])
+        n = max(int(record.get("n", 1)), 1)
+        w = np.exp(gain - 0.5 * np.log(n))  # BIC: one parameter more than the selected model
+        self.weights = w / (1.0 + float(np.sum(w)))
+        self.coef = coef
+        self.available = self.features is not None
+
+    def expected_excess(self, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
+        """``E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j)``, µm² (module docstring;
+        0 without alternatives).
+
+        Parameters
+        ----------
+        state : ndarray, shape (n_s,)
+        u_a, u_b : ndarray, shape (n_p,)
+        """
+        if self.features is None:
+            return 0.0
+        s = np.asarray(state, dtype=float)
+        X = np.vstack([np.concatenate([s, np.asarray(u_a, dtype=float)]),
+                       np.concatenate([s, np.asarray(u_b, dtype=float)])])
+        V = self.features.values(X)
+        return float(np.sum(self.weights * self.coef * (V[0] - V[1])))
