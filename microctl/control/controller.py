@@ -39,7 +39,7 @@ import casadi as ca
 import numpy as np
 
 from microctl.control.base import BaseController, unreachable
-from microctl.control.credible import Alternatives, expected_error, prob_better
+from microctl.control.credible import Alternatives, prob_better
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
 from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
@@ -334,22 +334,28 @@ class OptimalController(EAFMController):
             return res
         return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)
 
-    def _least_motion(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult | None:
-        """The smallest motion onto the EAFM-mean surface for ``res``'s target and state (None if
-        none passes the checks). ``||K u - q_prev||^2`` is convex and the surface is the AFM's plane
-        bent by f, so one polish from the AFM's least motion (a QP) finds it; the EAFM-mean
-        controller's global seeding runs only when that polish fails."""
+    def _least_start(self, res: ControlResult) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The AFM's least motion (a QP; None where the AFM does not reach the target) and the
+        same moved along w onto the EAFM-mean surface, the smallest motion onto that surface to
+        second order in f (None where that leaves the ranges, e.g. from a range's edge)."""
         if self._least is None:
             self._least = EAFMMeanController(self.eafm, self.settings)
             self._least_afm = AFMController(self.afm, self.settings)
-        t0 = time.perf_counter()
         try:  # the AFM cannot reach every target the EAFM mean can
             start = self._least_afm.solve(res.target_um, res.state).u
         except SolveError:
-            start = None
+            return None, None
+        return start, self._least.surface.refine(res.state, start, res.target_um)
+
+    def _least_motion(self, res: ControlResult, start: np.ndarray | None,
+                      u_init: np.ndarray | None) -> ControlResult | None:
+        """The smallest motion onto the EAFM-mean surface for ``res``'s target and state (None if
+        none passes the checks). ``||K u - q_prev||^2`` is convex and the surface is the AFM's plane
+        bent by f, so one polish from :meth:`_least_start` finds it; the EAFM-mean controller's
+        global seeding runs only when there is no start or its polish fails."""
+        t0 = time.perf_counter()
         if start is not None:
-            with single_thread_blas():
-                least = self._least._polish(res.state, res.target_um, [start], t0)
+            least = self._least._polish(res.state, res.target_um, [start], t0)
             if least is not None:
                 return least
         try:
@@ -360,26 +366,37 @@ class OptimalController(EAFMController):
 
     def _unless_credible(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult:
         """``res`` if its pose is credibly better than the least motion's, else the least motion
-        (reported as this controller's result: eq. 4's objective at it)."""
+        (reported as this controller's result: eq. 4's objective at it).
+
+        The comparison is made with :meth:`_least_start` when there is one (the exact least motion
+        differs from it to second order in f, which does not move the decision); the exact least
+        motion is polished only when it is returned.
+        """
         t0 = time.perf_counter() - res.solve_time_s
-        least = self._least_motion(res, u_init)
-        if least is None:
-            return res
         if self._alternatives is None:
             self._alternatives = Alternatives(self.eafm)
         with single_thread_blas():
-            p = prob_better(self.eafm, res.state, res.u, least.u)
-            r_opt, r_least = expected_error(self.eafm, res.state, np.vstack([res.u, least.u]))
-            excess = self._alternatives.expected_excess(res.state, res.u, least.u)
-        if p >= self.settings.credible_level and r_opt + excess < r_least:
-            return replace(res, choice=f"optimum: credibly better than the least motion (P = {p:.3f}; "
-                                       f"{r_opt + excess:.3g} vs {r_least:.3g} µm²)",
-                           solve_time_s=time.perf_counter() - t0)
+            start, approx = self._least_start(res)
+            least = None if approx is not None else self._least_motion(res, start, u_init)
+            if approx is None and least is None:
+                return res
+            u_least = approx if approx is not None else least.u
+            p, r_opt, r_least = prob_better(self.eafm, res.state, res.u, u_least)
+            excess = self._alternatives.expected_excess(res.state, res.u, u_least)
+            if p >= self.settings.credible_level and r_opt + excess < r_least:
+                return replace(res, choice=f"optimum: credibly better than the least motion (P = {p:.3f}; expected "
+                                           f"squared error {r_opt:.3g} vs {r_least:.3g} µm², the unselected "
+                                           f"sources add {excess:+.3g} µm² to the difference)",
+                               solve_time_s=time.perf_counter() - t0)
+            if least is None:
+                least = self._least_motion(res, approx, u_init)
+                if least is None:
+                    return res
         self._last_attempts = {"status": [least.status], "iter": res.iterations + least.iterations,
                                "n": res.n_starts + least.n_starts}
         why = (f"better with P = {p:.3f} < {self.settings.credible_level:g}" if p < self.settings.credible_level
-               else f"not better once the sources the data did not select are weighed in: "
-                    f"{r_opt + excess:.3g} vs {r_least:.3g} µm²")
+               else f"not better once the sources the data did not select are weighed in (expected squared "
+                    f"error {r_opt:.3g} vs {r_least:.3g} µm², they add {excess:+.3g} µm² to the difference)")
         out = self._result(res.state, res.target_um, least.u, least.status, True, t0)
         return replace(out, choice=f"least motion: eq. 4's optimum {why}")
 

@@ -47,7 +47,7 @@ from microctl.gp.shaped_features import ShapedFeatures
 from microctl.models.eafm import EAFM
 from microctl.models.noise_dictionary import candidate_features
 
-__all__ = ["DRAWS", "SEED", "prob_lower", "prob_better", "expected_error", "Alternatives"]
+__all__ = ["DRAWS", "SEED", "prob_lower", "prob_better", "Alternatives"]
 
 #: Monte Carlo draws of (g_a, g_b) and their seed (standard error of a probability <= 0.008).
 DRAWS, SEED = 4096, 20_261_126
@@ -82,7 +82,7 @@ def prob_lower(mean: np.ndarray, cov: np.ndarray, f_var: np.ndarray) -> float:
     return float(np.mean(r[:, 0] < r[:, 1]))
 
 
-def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
+def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> tuple[float, float, float]:
     """Posterior probability that pose ``u_a`` has a lower expected squared error than ``u_b``.
 
     Parameters
@@ -91,18 +91,20 @@ def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray)
     state : ndarray, shape (n_s,)
         The state both moves start from.
     u_a, u_b : ndarray, shape (n_p,)
+
+    Returns
+    -------
+    p : float
+        :func:`prob_lower` of the two poses.
+    r_a, r_b : float
+        Their posterior expected squared errors ``f_var + E[exp(g)] = f_var + exp(mu_g + s_g^2 / 2)``, µm².
     """
     s = np.asarray(state, dtype=float)
     U = np.vstack([np.asarray(u_a, dtype=float), np.asarray(u_b, dtype=float)])
     mean, cov = eafm.g_joint(s, U)
-    return prob_lower(mean, cov, eafm.predict(s, U).f_var)
-
-
-def expected_error(eafm: EAFM, state: np.ndarray, U: np.ndarray) -> np.ndarray:
-    """The posterior expected squared error about the target, ``f_var + E[exp(g)]``, at the rows
-    of U (shape (m, n_p)) from ``state``, µm², shape (m,)."""
-    p = eafm.predict(np.asarray(state, dtype=float), np.atleast_2d(U))
-    return p.f_var + np.exp(p.g_mean + 0.5 * p.g_var)
+    f_var = eafm.predict(s, U).f_var
+    r = f_var + np.exp(mean + 0.5 * np.diag(cov))
+    return prob_lower(mean, cov, f_var), float(r[0]), float(r[1])
 
 
 class Alternatives:

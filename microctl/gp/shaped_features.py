@@ -142,9 +142,11 @@ class ShapedFeatures:
         """phi(x) at the rows of X (original units), shape (m, p)."""
         Z = self.linear(X)
         out = np.empty_like(Z)
-        for j, kind in enumerate(self.shapes):
-            out[:, j] = _shape_np(kind, Z[:, j], np.asarray(self.params[j])) / self.scale[j]
-        return out
+        params = np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2)
+        for kind in set(self.shapes):  # one call per shape, its columns at once (params broadcast)
+            idx = [j for j, k in enumerate(self.shapes) if k == kind]
+            out[:, idx] = _shape_np(kind, Z[:, idx], params[idx].T)
+        return out / np.asarray(self.scale, dtype=float)
 
     def casadi(self, x: ca.MX) -> ca.MX:
         """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""
