@@ -39,8 +39,8 @@ import casadi as ca
 import numpy as np
 
 from microctl.control.base import BaseController, unreachable
-from microctl.control.credible import Alternatives, prob_better
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
+from microctl.control.credible import Alternatives, prob_better
 from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
 from microctl.control.objectives import NoiseVariance, Objective, PerMoveObjective, SmallestMotion
@@ -51,6 +51,10 @@ from microctl.control.surface import EAFMSurface
 from microctl.errors import ConfigError, SolveError
 from microctl.models.eafm import EAFM
 from microctl.util.blas import single_thread_blas
+
+#: Two commands closer than this on every actuator (µm) are the same command (the least-motion
+#: rule then returns eq. 4's optimum without comparing).
+SAME_COMMAND_UM = 1e-6
 
 __all__ = [
     "ControllerSettings", "ControlResult", "Controller", "EAFMController", "OptimalController", "AFMController",
@@ -381,6 +385,9 @@ class OptimalController(EAFMController):
             if approx is None and least is None:
                 return res
             u_least = approx if approx is not None else least.u
+            if np.max(np.abs(self.afm.K @ (res.u - u_least))) <= SAME_COMMAND_UM:
+                return replace(res, choice="optimum: it is the least motion",
+                               solve_time_s=time.perf_counter() - t0)
             p, r_opt, r_least = prob_better(self.eafm, res.state, res.u, u_least)
             excess = self._alternatives.expected_excess(res.state, res.u, u_least)
             if p >= self.settings.credible_level and r_opt + excess < r_least:

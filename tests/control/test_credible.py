@@ -151,3 +151,20 @@ def test_a_found_stick_slip_keeps_the_optimum():
         r, m = ctl.solve(t, s), least.solve(t, s)
         assert r.choice.startswith("optimum: credibly better"), r.choice
         assert abs(r.q[1] - s[2]) < 0.1 and abs(m.q[1] - s[2]) > 0.4, (r.q, m.q)
+
+
+def test_expected_excess_is_the_weighted_source_difference():
+    """One alternative, stick-slip on PZT 2 (dq2:sq = (K_2 u - q_prev,2)^2, written out here), with
+    a gain so large that its BIC weight takes all the mass: the excess of pose a over b is
+    c ((K_2 a - q2)^2 - (K_2 b - q2)^2); with gain 0 at n = 100 its weight is 0.1 / 1.1."""
+    from microctl.control.credible import Alternatives
+
+    afm, eafm = _flat_and_planted(0.0, 60, 5)
+    s = np.concatenate([[3.0], [4.0, 5.0, 6.0, 7.0]])
+    a = np.linalg.lstsq(afm.K, np.array([10.0, 2.0, 8.0, 9.0]), rcond=None)[0]
+    b = np.linalg.lstsq(afm.K, np.array([6.0, 9.0, 5.0, 4.0]), rcond=None)[0]
+    hand = (afm.K[1] @ a - 5.0) ** 2 - (afm.K[1] @ b - 5.0) ** 2
+    for gain, n, share in ((500.0, 100, 1.0), (0.0, 100, 0.1 / 1.1)):
+        info = {**eafm.model.info, "noise_selection": {"alternatives": {"dq2:sq": [2e-3, gain]}, "n": n}}
+        alt = Alternatives(EAFM(afm, replace(eafm.model, info=info)))
+        assert alt.expected_excess(s, a, b) == pytest.approx(share * 2e-3 * hand, rel=1e-9)

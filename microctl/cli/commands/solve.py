@@ -179,6 +179,7 @@ def _step_dict(afm: AnalyticForwardModel, eafm: EAFM, settings: ControllerSettin
         "noise_upper_std_um": res.noise_upper_std_um,
         "bias_std_um": res.bias_std_um,
         "hysteresis_um": res.hysteresis_um,
+        "choice": res.choice,
         "objective": res.objective,
         "r_e": settings.r_e,
         "kappa": settings.kappa,
@@ -228,6 +229,8 @@ def _print_single(afm: AnalyticForwardModel, settings: ControllerSettings, eafm:
                "NOT credibly quieter than the AFM baseline's: the data do not show it to be more repeatable")
     print(f"noise at the EAFM command: std {res.noise_std_um:.4f} µm (upper {settings.kappa:g}-sigma "
           f"{res.noise_upper_std_um:.4f} µm); {verdict} (P = {cmp.prob_quieter:.3f}, level {cmp.level:g})")
+    if res.choice:
+        print(f"command: {res.choice}")
     print(f"IPOPT: {res.status}, {res.iterations} iterations, {res.n_starts} start(s), "
           f"{res.solve_time_s * 1e3:.1f} ms; r_e = {settings.r_e}; noise model {eafm.model.noise_model}")
 
