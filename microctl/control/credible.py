@@ -117,11 +117,10 @@ class Alternatives:
         of the candidate at scale 1, log-likelihood gain in nats]) and ``["n"]`` (training
         moves) give the alternatives; the candidates of
         :func:`~microctl.models.noise_dictionary.candidate_features` for ``eafm.afm`` with a
-        stored entry are used (none: :attr:`available` is False).
+        stored entry are used (none: no alternatives, :meth:`expected_excess` is 0).
     """
 
     def __init__(self, eafm: EAFM):
-        self.eafm = eafm
         record = (eafm.model.info or {}).get("noise_selection", {})
         alts = record.get("alternatives") or {}
         cands = candidate_features(eafm.afm)
@@ -133,7 +132,6 @@ class Alternatives:
         w = np.exp(gain - 0.5 * np.log(n))  # BIC: one parameter more than the selected model
         self.weights = w / (1.0 + float(np.sum(w)))
         self.coef = coef
-        self.available = self.features is not None
 
     def expected_excess(self, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
         """``E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j)``, µm² (module docstring;

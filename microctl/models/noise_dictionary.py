@@ -171,8 +171,8 @@ def alternatives(residual: np.ndarray, variance: np.ndarray, Phi: np.ndarray) ->
 
     For candidate j the variance ``a (v + rho phi_j)`` (v the fitted model's noise variance at
     the training moves, its shape held, with a free scale a: closed-form ``a = mean(r^2 / (v +
-    rho phi_j))``, as :func:`_profile_gains`) is profiled over rho >= 0 on the grid
-    :data:`PROFILE_RATIOS` times mean(v) / mean(phi_j) (and rho = 0).
+    rho phi_j))``) is profiled over rho >= 0 on the grid :data:`PROFILE_RATIOS` times
+    mean(v) / mean(phi_j) (and rho = 0): :func:`_profile_gains`' profile, keeping where it peaks.
 
     Parameters
     ----------
@@ -195,18 +195,16 @@ def alternatives(residual: np.ndarray, variance: np.ndarray, Phi: np.ndarray) ->
     v = np.asarray(variance, dtype=float)
     Phi = np.asarray(Phi, dtype=float)
     n = r2.size
-    unit = float(np.mean(v)) / np.maximum(Phi.mean(axis=0), 1e-300)  # (P,)
-    grid = np.concatenate([[0.0], PROFILE_RATIOS])
-    ll = np.empty((grid.size, Phi.shape[1]))
-    coef = np.empty_like(ll)
-    for k, rho in enumerate(grid):
-        w = v[:, None] + rho * unit[None, :] * Phi
-        a = np.mean(r2[:, None] / w, axis=0)
-        ll[k] = -0.5 * (n * np.log(a) + np.sum(np.log(w), axis=0))
-        coef[k] = a * rho * unit
-    best = np.argmax(ll, axis=0)
-    cols = np.arange(Phi.shape[1])
-    return coef[best, cols], ll[best, cols] - ll[0]
+    m = np.maximum(Phi.mean(axis=0), 1e-300)  # (P,): each candidate at unit mean, as the grid assumes
+    base = -0.5 * n * np.log(np.mean(r2 / v))  # rho = 0 (the constant terms cancel)
+    gain, coef = np.zeros(Phi.shape[1]), np.zeros(Phi.shape[1])
+    for rho, (inv_v, logdet) in zip(float(np.mean(v)) * PROFILE_RATIOS, _profile_terms(v, Phi / m)):
+        a = (r2 @ inv_v) / n  # (P,)
+        ll = -0.5 * (n * np.log(a) + logdet) - base
+        better = ll > gain
+        gain = np.where(better, ll, gain)
+        coef = np.where(better, a * rho / m, coef)
+    return coef, gain
 
 
 def _fit_variance(r2: np.ndarray, Phi: np.ndarray) -> tuple[float, np.ndarray]:
