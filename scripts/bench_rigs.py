@@ -112,6 +112,9 @@ METHODS = {
     # the default without the least-motion rule (microctl.control.credible): eq. 4's optimum always,
     # the default before issue 18's least-motion change
     "eq4": Method("eq4", "covering", ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),
+    # the default with the unselected noise sources' model-averaged variance in eq. 4's objective
+    # (microctl.models.alternatives)
+    "weighed": Method("weighed", "covering", ResidualModelSettings(), ControllerSettings(weigh_alternatives=True)),
     # the default without the mean correction's posterior variance in the objective (the
     # previous release's objective; the default adds it since issue 18)
     "noise_only": Method("noise_only", "covering", ResidualModelSettings(), ControllerSettings(epistemic=False)),

@@ -40,7 +40,7 @@ import numpy as np
 
 from microctl.control.base import BaseController, unreachable
 from microctl.control.baseline import AFMController, compare_noise, with_baseline
-from microctl.control.credible import Alternatives, prob_better
+from microctl.control.credible import prob_better
 from microctl.control.fastpath import FastSQP, build_fast_function
 from microctl.control.ipopt import ipopt_options
 from microctl.control.objectives import NoiseVariance, Objective, PerMoveObjective, SmallestMotion
@@ -320,7 +320,6 @@ class OptimalController(EAFMController):
         self.baseline = baseline
         self._least: EAFMMeanController | None = None
         self._least_afm: AFMController | None = None
-        self._alternatives: Alternatives | None = None
 
     def solve(self, target_um: float, state: np.ndarray | None = None, *,
               u_init: np.ndarray | None = None) -> ControlResult:
@@ -377,8 +376,6 @@ class OptimalController(EAFMController):
         motion is polished only when it is returned.
         """
         t0 = time.perf_counter() - res.solve_time_s
-        if self._alternatives is None:
-            self._alternatives = Alternatives(self.eafm)
         with single_thread_blas():
             start, approx = self._least_start(res)
             least = None if approx is not None else self._least_motion(res, start, u_init)
@@ -389,7 +386,7 @@ class OptimalController(EAFMController):
                 return replace(res, choice="optimum: it is the least motion",
                                solve_time_s=time.perf_counter() - t0)
             p, r_opt, r_least = prob_better(self.eafm, res.state, res.u, u_least)
-            excess = self._alternatives.expected_excess(res.state, res.u, u_least)
+            excess = self.eafm.alternatives.expected_excess(res.state, res.u, u_least)
             if p >= self.settings.credible_level and r_opt + excess < r_least:
                 return replace(res, choice=f"optimum: credibly better than the least motion (P = {p:.3f}; expected "
                                            f"squared error {r_opt:.3g} vs {r_least:.3g} µm², the unselected "

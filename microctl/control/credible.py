@@ -26,7 +26,8 @@ model, the expected extra squared error of pose a over pose b is
     E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j),
 
 and the optimum a counts as credibly better than the least motion b only if the probability
-above reaches ``credible_level`` *and* ``r_a + E < r_b`` (:class:`Alternatives`). A model
+above reaches ``credible_level`` *and* ``r_a + E < r_b`` (E = ``EAFM.alternatives.expected_excess``,
+:class:`~microctl.models.alternatives.Alternatives`, re-exported here). A model
 file written before the alternatives were stored has no such term.
 
 Why the controller asks (``ControllerSettings.prefer_least_motion``): where the noise model has
@@ -43,9 +44,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from microctl.gp.shaped_features import ShapedFeatures
+from microctl.models.alternatives import Alternatives
 from microctl.models.eafm import EAFM
-from microctl.models.noise_dictionary import candidate_features
 
 __all__ = ["DRAWS", "SEED", "prob_lower", "prob_better", "Alternatives"]
 
@@ -105,47 +105,3 @@ def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray)
     f_var = eafm.predict(s, U).f_var
     r = f_var + np.exp(mean + 0.5 * np.diag(cov))
     return prob_lower(mean, cov, f_var), float(r[0]), float(r[1])
-
-
-class Alternatives:
-    """The stage's candidate noise sources, each added alone at its best size, weighed by evidence.
-
-    Parameters
-    ----------
-    eafm : EAFM
-        Its model's ``info["noise_selection"]["alternatives"]`` (name -> [coefficient per unit
-        of the candidate at scale 1, log-likelihood gain in nats]) and ``["n"]`` (training
-        moves) give the alternatives; the candidates of
-        :func:`~microctl.models.noise_dictionary.candidate_features` for ``eafm.afm`` with a
-        stored entry are used (none: no alternatives, :meth:`expected_excess` is 0).
-    """
-
-    def __init__(self, eafm: EAFM):
-        record = (eafm.model.info or {}).get("noise_selection", {})
-        alts = record.get("alternatives") or {}
-        cands = candidate_features(eafm.afm)
-        idx = [j for j, nm in enumerate(cands.names) if nm in alts]
-        self.features: ShapedFeatures | None = cands.subset(idx) if idx else None
-        coef = np.array([float(alts[cands.names[j]][0]) for j in idx])
-        gain = np.array([float(alts[cands.names[j]][1]) for j in idx])
-        n = max(int(record.get("n", 1)), 1)
-        w = np.exp(gain - 0.5 * np.log(n))  # BIC: one parameter more than the selected model
-        self.weights = w / (1.0 + float(np.sum(w)))
-        self.coef = coef
-
-    def expected_excess(self, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
-        """``E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j)``, µm² (module docstring;
-        0 without alternatives).
-
-        Parameters
-        ----------
-        state : ndarray, shape (n_s,)
-        u_a, u_b : ndarray, shape (n_p,)
-        """
-        if self.features is None:
-            return 0.0
-        s = np.asarray(state, dtype=float)
-        X = np.vstack([np.concatenate([s, np.asarray(u_a, dtype=float)]),
-                       np.concatenate([s, np.asarray(u_b, dtype=float)])])
-        V = self.features.values(X)
-        return float(np.sum(self.weights * self.coef * (V[0] - V[1])))

@@ -15,6 +15,12 @@ log-normal noise variance (:class:`NoiseVariance`); the summaries (``noise_quant
 ``epistemic=True`` (the default) adds f's posterior variance (the uncertainty of the mean
 correction) to ``r_e``, i.e. the expected squared error of the pose about the target;
 ``epistemic=False`` is the paper's objective.
+
+``alternatives=True`` adds the model-averaged extra noise variance of the noise sources the
+data did not select (:mod:`microctl.models.alternatives`, ``EAFM.alt_var``): the expected
+squared error averaged over the selected noise model and the alternatives the data cannot rule
+out, so the optimum does not move an actuator far when a source on it is plausible but not
+significant.
 """
 
 from __future__ import annotations
@@ -96,11 +102,14 @@ class NoiseVariance:
         Add f's posterior variance to r_e (default: the expected squared error about the target
         is f's variance plus the noise's, so the controller does not park where f is
         extrapolated; issue 18).
+    alternatives : bool
+        Add the unselected noise sources' model-averaged variance (module docstring).
     """
 
     r_e: str = R_E_SUMMARIES.setting("noise_quantile")
     kappa: float = setting(1.645, lo=0.0, hi=5.0)
     epistemic: bool = setting(True)
+    alternatives: bool = setting(False)
 
     def __post_init__(self) -> None:
         validate_settings(self, "objective setting")
@@ -112,18 +121,20 @@ class NoiseVariance:
 
     @property
     def name(self) -> str:
-        return self.r_e + ("+epistemic" if self.epistemic else "")
+        return self.r_e + ("+epistemic" if self.epistemic else "") + ("+alternatives" if self.alternatives else "")
 
     @property
     def needs(self) -> tuple[str, ...]:
         return ("t_mean", "g_mean") + (("g_var",) if self.summary.needs_g_var else ()) + (
-            ("f_var",) if self.epistemic else ())
+            ("f_var",) if self.epistemic else ()) + (("alt_var",) if self.alternatives else ())
 
     def r_mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
         """r_e (µm²) as a CasADi expression (the summed quantity of sequence control)."""
         r = self.summary.mx(e["g_mean"], e.get("g_var"), self.kappa)
         if self.epistemic:
             r = r + e["f_var"]
+        if self.alternatives:
+            r = r + e["alt_var"]
         return r
 
     def mx(self, s: ca.MX, u: ca.MX, e: dict, K: np.ndarray) -> ca.MX:
@@ -135,6 +146,8 @@ class NoiseVariance:
         r = self.summary.at(eafm, s, U, self.kappa, cheap)
         if self.epistemic:
             r = r + eafm.predict(s, U).f_var
+        if self.alternatives:
+            r = r + eafm.alt_var(s, U)
         return r
 
     def r_pairs(self, eafm: EAFM, S: np.ndarray, U: np.ndarray, *, seeding: bool = False) -> np.ndarray:
@@ -159,6 +172,8 @@ class NoiseVariance:
                 r = r + eafm.predict(S.mean(axis=0), U).f_var[None, :]
             else:
                 r = r + np.vstack([eafm.predict(s, U).f_var for s in S])
+        if self.alternatives:
+            r = r + np.vstack([eafm.alt_var(s, U) for s in S])
         return r
 
     def of_r(self, r: np.ndarray) -> np.ndarray:

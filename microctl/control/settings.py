@@ -39,6 +39,10 @@ class ControllerSettings:
         with posterior probability >= ``credible_level``, and still lower once the noise sources
         the data did not select are weighed in (:mod:`microctl.control.credible`). Default true;
         false: eq. 4's optimum always (the paper's rule).
+    weigh_alternatives : bool
+        Add to eq. 4's r_e the model-averaged extra variance of the noise sources the data did
+        not select (:mod:`microctl.models.alternatives`): the optimum then weighs a plausible
+        but unproven source on an actuator before moving it.
     grid : int
         Grid points per null-space axis of the global seeding (``grid**(n_p-1)`` points).
     newton_steps : int
@@ -73,6 +77,7 @@ class ControllerSettings:
     epistemic: bool = same_setting(NoiseVariance, "epistemic")
     credible_level: float = setting(0.95, lo=0.5, hi=1.0, lo_open=True)
     prefer_least_motion: bool = setting(True)
+    weigh_alternatives: bool = setting(False)
     grid: int = setting(15, lo=2, hi=201)
     newton_steps: int = setting(4, lo=1, hi=50)
     n_polish: int = setting(2, lo=1, hi=50)
@@ -89,7 +94,8 @@ class ControllerSettings:
 
     def objective(self) -> NoiseVariance:
         """The objective of eq. 4 these settings describe."""
-        return NoiseVariance(r_e=self.r_e, kappa=float(self.kappa), epistemic=self.epistemic)
+        return NoiseVariance(r_e=self.r_e, kappa=float(self.kappa), epistemic=self.epistemic,
+                             alternatives=self.weigh_alternatives)
 
     def sequence(self) -> SequenceObjective:
         """The sequence objective these settings name (``sequence_objective``)."""

@@ -39,6 +39,8 @@ from microctl.errors import ConfigError
 from microctl.gp.fitted import FittedVHGPR
 from microctl.gp.posterior import Posterior
 from microctl.models.afm import AnalyticForwardModel, plausible_t_bound_um
+from microctl.models.alternatives import Alternatives
+from microctl.models.noise_dictionary import candidate_features
 
 __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
 
@@ -179,6 +181,20 @@ class EAFM:
                               f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
         self.posterior: Posterior = model.posterior
         self._function: ca.Function | None = None
+        self._alternatives: Alternatives | None = None
+
+    @property
+    def alternatives(self) -> Alternatives:
+        """The unselected noise sources of the model's dictionary selection, weighed by evidence
+        (:mod:`microctl.models.alternatives`; none for a model without stored alternatives)."""
+        if self._alternatives is None:
+            self._alternatives = Alternatives(self.model.info, candidate_features(self.afm))
+        return self._alternatives
+
+    def alt_var(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The model-averaged extra noise variance of the unselected sources, µm², shape (m,)
+        (:meth:`Alternatives.values`; s shape (n_s,) or (m, n_s), u shape (n_p,) or (m, n_p))."""
+        return self.alternatives.values(self._x(s, u))
 
     @property
     def function(self) -> ca.Function:
@@ -214,7 +230,8 @@ class EAFM:
         s, u : casadi.MX
         which : tuple of str, optional
             Subset of ``("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")`` to
-            build (default all). Only the requested branches enter the graph.
+            build (default all), and ``"alt_var"`` (:meth:`alt_var`; only on request). Only the
+            requested branches enter the graph.
 
         Returns
         -------
@@ -235,6 +252,8 @@ class EAFM:
             out["q"] = q
         if "t_afm" in which:
             out["t_afm"] = t_afm
+        if "alt_var" in which:
+            out["alt_var"] = self.alternatives.casadi(x)
         return {k: out[k] for k in which}
 
     # ---- NumPy reference -----------------------------------------------------------

@@ -157,8 +157,6 @@ def test_expected_excess_is_the_weighted_source_difference():
     """One alternative, stick-slip on PZT 2 (dq2:sq = (K_2 u - q_prev,2)^2, written out here), with
     a gain so large that its BIC weight takes all the mass: the excess of pose a over b is
     c ((K_2 a - q2)^2 - (K_2 b - q2)^2); with gain 0 at n = 100 its weight is 0.1 / 1.1."""
-    from microctl.control.credible import Alternatives
-
     afm, eafm = _flat_and_planted(0.0, 60, 5)
     s = np.concatenate([[3.0], [4.0, 5.0, 6.0, 7.0]])
     a = np.linalg.lstsq(afm.K, np.array([10.0, 2.0, 8.0, 9.0]), rcond=None)[0]
@@ -166,5 +164,59 @@ def test_expected_excess_is_the_weighted_source_difference():
     hand = (afm.K[1] @ a - 5.0) ** 2 - (afm.K[1] @ b - 5.0) ** 2
     for gain, n, share in ((500.0, 100, 1.0), (0.0, 100, 0.1 / 1.1)):
         info = {**eafm.model.info, "noise_selection": {"alternatives": {"dq2:sq": [2e-3, gain]}, "n": n}}
-        alt = Alternatives(EAFM(afm, replace(eafm.model, info=info)))
+        alt = EAFM(afm, replace(eafm.model, info=info)).alternatives
         assert alt.expected_excess(s, a, b) == pytest.approx(share * 2e-3 * hand, rel=1e-9)
+
+
+def _with_alternatives(afm, eafm, alts: dict, n: int):
+    info = {**eafm.model.info, "noise_selection": {**eafm.model.info["noise_selection"],
+                                                   "alternatives": alts, "n": n}}
+    return EAFM(afm, replace(eafm.model, info=info))
+
+
+def test_weighed_objective_casadi_equals_numpy_and_the_hand_written_sources():
+    """eq. 4's r with ``alternatives``: the CasADi graph equals the NumPy reference at random
+    moves (to 1e-9 relative), and v_alt equals the hand-written sum of two sources (dq2^2 and
+    a smooth |dq4| written out here) with their BIC weights."""
+    import casadi as ca
+
+    from microctl.control.objectives import NoiseVariance
+    from microctl.models.noise_dictionary import STEP_EPS_UM
+
+    afm, base = _flat_and_planted(0.0, 60, 5)
+    n, (c2, g2), (c4, g4) = 100, (2e-3, 3.0), (5e-3, 1.0)
+    eafm = _with_alternatives(afm, base, {"dq2:sq": [c2, g2], "dq4:abs": [c4, g4]}, n)
+    w = np.exp(np.array([g2, g4]) - 0.5 * math.log(n))
+    w = w / (1.0 + w.sum())
+    obj = NoiseVariance(alternatives=True)
+    s_sym, u_sym = ca.MX.sym("s", afm.n_s), ca.MX.sym("u", afm.n_p)
+    f = ca.Function("r", [s_sym, u_sym], [obj.r_mx(s_sym, u_sym, eafm.expressions(s_sym, u_sym, obj.needs), afm.K)])
+    plain = NoiseVariance()
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        q_prev = rng.uniform(0, 30, 4)
+        s = np.concatenate([[rng.uniform(0, 30)], q_prev])
+        u = np.linalg.lstsq(afm.K, rng.uniform(0, 30, 4), rcond=None)[0]
+        dq = afm.K @ u - q_prev
+        # dq4:abs is |dq| smoothed: sqrt(dq^2 + eps^2) - eps
+        hand = w[0] * c2 * dq[1] ** 2 + w[1] * c4 * (math.sqrt(dq[3] ** 2 + STEP_EPS_UM ** 2) - STEP_EPS_UM)
+        assert eafm.alt_var(s, u)[0] == pytest.approx(hand, rel=1e-9)
+        r_np = obj.r_np(eafm, s, u[None, :])[0]
+        assert float(f(s, u)) == pytest.approx(r_np, rel=1e-9)
+        assert r_np - plain.r_np(eafm, s, u[None, :])[0] == pytest.approx(hand, rel=1e-9)
+
+
+def test_weighed_optimum_moves_less_an_actuator_with_a_plausible_source():
+    """Gauge noise only, and one stored alternative, stick-slip on PZT 2 with a gain of 6 nats
+    (weight 0.9 at n = 60): eq. 4's optimum (rule off) weighing it moves PZT 2 less than the
+    optimum that does not, at every target of a sequence, and meets every target."""
+    afm, base = _flat_and_planted(0.0, 60, 5)
+    eafm = _with_alternatives(afm, base, {"dq2:sq": [2e-3, 6.0]}, 60)
+    plain = OptimalController(eafm, ControllerSettings(prefer_least_motion=False))
+    weighed = OptimalController(eafm, ControllerSettings(prefer_least_motion=False, weigh_alternatives=True))
+    u = np.linalg.lstsq(afm.K, np.full(4, 16.0), rcond=None)[0]
+    s = np.concatenate([eafm.predict(afm.zero_state(), u).t_mean, afm.K @ u])
+    for dt in (-6.0, -3.0, 3.0, 6.0):
+        a, b = plain.solve(s[0] + dt, s), weighed.solve(s[0] + dt, s)
+        assert a.success and b.success and b.constraint_residual <= 1e-8
+        assert abs(b.q[1] - s[2]) < abs(a.q[1] - s[2]), (a.q, b.q, s)
