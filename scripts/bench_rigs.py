@@ -25,7 +25,10 @@ Methods (columns):
   r_e = noise_quantile), to show what the noise model alone changes;
 - ``physical``: the previous release's noise model (every actuator's stick-slip);
 - ``default``: today's defaults (the noise dictionary, selected by the data; f's variance in
-  the objective);
+  the objective; the least-motion rule);
+- ``eq4``: the default without the least-motion rule (eq. 4's optimum always);
+- ``weighed``: the default with the unselected sources' model-averaged variance in eq. 4's
+  objective (``weigh_alternatives``);
 - ``noise_only``: today's model with the previous objective (no f variance);
 - ``params``: the default with the noise parameters' uncertainty in the objective.
 
