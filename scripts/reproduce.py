@@ -17,7 +17,7 @@ Sections (``--only`` picks some; default: all, in this order):
     ``microctl experiment configs/experiments/paper_scale.yaml --out runs/paper_scale``, and
     the same with ``--seed-offset`` 10000 ... 90000 (``docs/generated/paper_scale.md``):
     the paper-scale rig, its Table II and, per seed offset, whether its AFM errors keep the
-    paper's size and grow with the target.
+    paper's size and grow with the target (``--jobs`` seed sets at a time).
 ``bench_rigs``
     ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,eq4
     --seed-sets 10 --jobs 2`` (the main job over 10 seed sets, and 12 rigs of every noise family
@@ -45,6 +45,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -293,15 +294,17 @@ def section_main_job(args, docs: Path, runs: Path) -> Path:
 
 def section_paper_scale(args, docs: Path, runs: Path) -> Path:
     out = runs / "paper_scale"
-    res, wall, shown = run_experiment_cli(PAPER_SCALE, out)
-    all_runs = [(0, res)]
-    cmds = []
-    for k in PAPER_SCALE_OFFSETS:
-        r, _, c = run_experiment_cli(PAPER_SCALE, runs / f"paper_scale_offset{k}", k)
-        all_runs.append((k, r))
-        cmds.append(c)
+    offsets = (0, *PAPER_SCALE_OFFSETS)
+    dirs = [out if k == 0 else runs / f"paper_scale_offset{k}" for k in offsets]
+    # the seed sets are independent runs: ``--jobs`` of them at a time (each one process)
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        done = list(pool.map(lambda kd: run_experiment_cli(PAPER_SCALE, kd[1], kd[0]), zip(offsets, dirs)))
+    res, wall, shown = done[0]
+    all_runs = [(k, r) for k, (r, _, _) in zip(offsets, done)]
+    cmds = [c for _, _, c in done[1:]]
+    beside = f", {args.jobs} seed sets at a time" if args.jobs > 1 else ""
     L = _head("paper_scale", "Paper-scale rig: measured results", shown)
-    L += [f"Wall time {wall:.1f} s (the run's own timings: {_timings(res)}). Also run with every seed shifted "
+    L += [f"Wall time {wall:.1f} s{beside} (the run's own timings: {_timings(res)}). Also run with every seed shifted "
           "(`--seed-offset`): "
           + "; ".join(f"`{c}`" for c in cmds) + ".", ""]
     L += rig_lines(res)
@@ -350,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", default=",".join(SECTIONS),
                     help=f"comma-separated sections (default: all of {', '.join(SECTIONS)})")
-    ap.add_argument("--jobs", type=int, default=2, help="worker processes for bench_rigs (default 2)")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes for bench_rigs, and paper_scale seed sets run at a time (default 2)")
     ap.add_argument("--runs", default=str(ROOT / "runs"), help="where the runs are written (default runs/)")
     ap.add_argument("--docs", default=str(ROOT / "docs" / "generated"), help="where the Markdown goes")
     args = ap.parse_args(argv)
