@@ -35,7 +35,9 @@ profiled log-likelihood gain (:func:`_profile_gains`) is referred to the distrib
 *largest* gain over all candidates in play, simulated under the current fit (residuals drawn from
 N(0, v(x)) at the training inputs, :data:`NULL_DRAWS` draws, a fixed seed), which accounts for
 their correlation exactly. On a stage whose scatter is the gauge alone, nothing is selected
-with probability >= 1 - alpha (tested). The tilt source (below) keeps the conservative
+with probability >= 1 - alpha (tested). Once no candidate enters, each selected source's shape
+is re-chosen among the shapes of its quantity with the others in the model (an exchange adds no
+parameter, so the entry tests stand; :func:`_refine_shapes`). The tilt source (below) keeps the conservative
 Bonferroni correction (its direction is not identified under the null).
 """
 
@@ -53,7 +55,7 @@ from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives"]
+__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives", "quantity"]
 
 #: Residual draws under the current fit for the max-statistic p-values, and their seed; the grid
 #: of a candidate's share (times the mean current variance) its profiled gain is maximised over.
@@ -146,7 +148,8 @@ class Selection:
         Selected candidates, in the order they entered.
     names : tuple of str
     gains : tuple of float
-        Log-likelihood gain of each when it entered (nats).
+        Log-likelihood gain of each when it entered (nats), plus what an exchange of its shape
+        added (``swaps``).
     thresholds : tuple of float
         The gain each needed at least (the BIC's half log n per parameter).
     loglik : float
@@ -155,6 +158,9 @@ class Selection:
         The direction of the tilt source, when it entered (its name is ``"tilt"``, last).
     p_values : tuple of float
         The adjusted p-value of each when it entered (it had to be below ``alpha``).
+    swaps : tuple of (str, str)
+        Shapes the refinement after the forward pass exchanged (entered as, kept as); a swapped
+        source's gain includes the likelihood the exchange added (:func:`_refine_shapes`).
     """
 
     indices: tuple[int, ...]
@@ -164,6 +170,7 @@ class Selection:
     loglik: float
     tilt: np.ndarray | None = None
     p_values: tuple[float, ...] = ()
+    swaps: tuple[tuple[str, str], ...] = ()
 
 
 def alternatives(residual: np.ndarray, variance: np.ndarray, Phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +365,8 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's likelihood-ratio
     statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over every candidate
     in play. An entry also needs the BIC's gain (half log n per parameter) and a positive
-    likelihood gain.
+    likelihood gain. After the forward pass each selected source's shape is re-chosen among the
+    candidates of its quantity (:func:`_refine_shapes`).
 
     Parameters
     ----------
@@ -386,6 +394,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     gains: list[float] = []
     thresholds: list[float] = []
     p_values: list[float] = []
+    slots: list[int] = []  # where each of ``chosen`` is in ``gains`` (the tilt has a place there too)
     tilt = None
     ll, c = _fit_variance(r2, Phi[:, :0])
     while len(chosen) + (tilt is not None) < min(max_features, P):
@@ -414,13 +423,72 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
             tilt = best[5]
         else:
             chosen.append(best[3])
+            slots.append(len(gains))
         gains.append(best[1])
         thresholds.append(best[2])
         p_values.append(best[0])
         ll, c = ll + best[1], best[4]
+    ll, swaps = _refine_shapes(r2, Phi, names, chosen, [gains, slots], ll, tilt_inputs, tilt)
     names_out = tuple(names[j] for j in chosen) + (("tilt",) if tilt is not None else ())
     return Selection(tuple(chosen), names_out, tuple(gains), tuple(thresholds), ll,
-                     None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values))
+                     None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values), tuple(swaps))
+
+
+#: Passes of the shape refinement over the selected sources (each pass re-chooses every shape once),
+#: and the least rise of the log-likelihood (nats) an exchange must bring (the optimiser's
+#: tolerance stays well below it; two shapes equal on the data are not exchanged).
+REFINE_PASSES, REFINE_MIN_GAIN = 3, 1e-3
+
+
+def quantity(name: str) -> str:
+    """The physical quantity a candidate is a shape of: its name before ``:`` (``dq3`` for
+    ``dq3:sq`` and ``dq3:sat@4``, ``q2`` for the stroke shapes of actuator 2, ``f1``)."""
+    return name.split(":", 1)[0]
+
+
+def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], gains_slots: list, ll: float,
+                   Z: np.ndarray | None, w: np.ndarray | None) -> tuple[float, list[tuple[str, str]]]:
+    """Re-choose each selected source's shape among the candidates of its quantity, the others held.
+
+    Forward selection fixes a source's shape when it enters, against the fit of that step: a
+    source entered before another actuator's is in the model sees that actuator's scatter in the
+    floor, and a shape flat in the step (``abs``) can then beat the right one (``sq``) and keep its
+    place although, with both in, the right shape has the higher likelihood (seen on stick-slip
+    rigs of scripts/rig_families.py with two actuators). An exchange adds no parameter, so the
+    entry tests stand; a shape is exchanged where the maximised log-likelihood rises, until a pass
+    exchanges nothing (at most :data:`REFINE_PASSES`). ``chosen`` and the gains are updated in place
+    (``gains_slots``: the step gains, and where each of ``chosen`` is among them).
+
+    Returns
+    -------
+    loglik : float
+        Maximised log-likelihood of the final set.
+    swaps : list of (str, str)
+        (entered as, kept as) per exchange.
+    """
+    gains, slots = gains_slots
+    swaps = []
+    for _ in range(REFINE_PASSES):
+        changed = False
+        for pos, j in enumerate(list(chosen)):
+            best_ll, best_k = ll, j
+            for k in range(Phi.shape[1]):
+                if k in chosen or quantity(names[k]) != quantity(names[j]):
+                    continue
+                trial = chosen.copy()
+                trial[pos] = k
+                lk, _ = _fit_variance_with(r2, Phi[:, trial], Z, w)
+                if lk > best_ll + REFINE_MIN_GAIN:
+                    best_ll, best_k = lk, k
+            if best_k != j:
+                chosen[pos] = best_k
+                gains[slots[pos]] += best_ll - ll
+                swaps.append((names[j], names[best_k]))
+                ll, changed = best_ll, True
+        if not changed:
+            break
+    return ll, swaps
+
 
 
 def _tilt_option(r2: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: int) -> tuple:

@@ -312,6 +312,8 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     record = {"selected": names, "gains_nats": [float(g) for g in sel.gains],
               "p_adjusted": [float(p) for p in sel.p_values], "alpha": SELECTION_ALPHA,
               "candidates": len(cands.names) + 1}
+    if sel.swaps:
+        record["shape_swaps"] = [list(sw) for sw in sel.swaps]
     model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time)
     # a source the fit inside the bound does not support (its coefficient within one Laplace
     # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training

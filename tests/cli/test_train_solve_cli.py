@@ -151,3 +151,15 @@ def test_one_shot_solve_never_imports_scipy(trained):
             "print('RC', rc, sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
     assert "RC 0 []" in out, out[-2000:]
+
+
+def test_train_line_names_exchanged_shapes():
+    """The one-line noise summary ``train`` prints names a shape the selection re-chose."""
+    from microctl.cli.commands.train import describe_noise
+
+    summary = {"noise_model": "dictionary", "floor_std_um": 0.05, "sources": {"dq3:sq": {}, "dq1:sq": {}},
+               "selection": {"candidates": 65, "shape_swaps": [["dq3:abs", "dq3:sq"]]}}
+    line = describe_noise(summary)
+    assert "dq3:sq, dq1:sq" in line and "dq3:abs -> dq3:sq" in line
+    del summary["selection"]["shape_swaps"]
+    assert "re-chosen" not in describe_noise(summary)

@@ -117,8 +117,10 @@ def describe_noise(summary: dict) -> str:
                 f"(floor std {summary['floor_std_um']:.4f} µm everywhere; g's GP models the rest)")
     if summary["noise_model"] == "dictionary":
         src = ", ".join(summary["sources"])
+        swaps = "; ".join(f"{a} -> {b}" for a, b in sel.get("shape_swaps", []))
+        swaps = f" (shapes re-chosen with the other sources in: {swaps})" if swaps else ""
         return (f"noise model dictionary: floor std {summary['floor_std_um']:.4f} µm; sources selected by the data "
-                f"among {sel['candidates']} candidates: {src}")
+                f"among {sel['candidates']} candidates: {src}{swaps}")
     if summary["noise_model"] != "physical":
         return "noise model hgp (the paper's: g ~ GP(mu0, K_g))"
     acts = ", ".join(f"{name} {a['friction_std_per_um']:.3f} ± {a['friction_std_per_um_se']:.3f}"
