@@ -40,7 +40,7 @@ from microctl.measurement.log import Measurement, MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
-from microctl.util.signals import interrupts_deferred
+from microctl.util.signals import interrupts_deferred, raise_if_interrupted
 
 __all__ = [
     "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
@@ -428,7 +428,9 @@ class Operator:
     A move is solved first; an unreachable target raises before anything is sent. The command
     is checked against the configured ranges again by the backend (nothing outside them is
     sent). The move and its log row are one step that Ctrl-C does not split: an interrupt
-    arriving during the move is raised after the row is written.
+    arriving during the move is raised after the row is written. A Ctrl-C that reached the command
+    line's handler during the solve ends the move before anything is sent, even where its
+    KeyboardInterrupt was lost on the way (:func:`microctl.util.signals.raise_if_interrupted`).
     """
 
     def __init__(self, controller: Controller, backend: Any, log: str | Path | None = None):
@@ -479,6 +481,7 @@ class Operator:
         tol = self.controller.settings.range_tol
         if not (np.all(np.isfinite(res.q)) and np.all(res.q >= lo - tol) and np.all(res.q <= hi + tol)):
             raise SolveError(f"the command q = {res.q.tolist()} µm leaves the configured ranges; nothing was sent")
+        raise_if_interrupted()  # a Ctrl-C during the solve whose KeyboardInterrupt was lost: nothing is sent
         with interrupts_deferred():
             m: Measurement = self.backend.move(res.u)
             if self._time_offset:

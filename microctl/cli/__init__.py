@@ -17,6 +17,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from microctl.errors import INPUT_ERRORS, MicroctlError
+from microctl.util.signals import RECEIVED
 
 if TYPE_CHECKING:  # pragma: no cover
     import argparse
@@ -140,8 +141,9 @@ def _one_line(exc: BaseException) -> str:
 
 #: SIGINTs received during the current :func:`main` (a Ctrl-C a library swallowed, or one that
 #: surfaced as another exception, e.g. ``ImportError: initialization failed`` from a compiled
-#: module being loaded, still ends the command with 130).
-_SIGINTS: list = []
+#: module being loaded, still ends the command with 130; the moving commands stop at the next
+#: move, :func:`microctl.util.signals.raise_if_interrupted`).
+_SIGINTS: list = RECEIVED
 
 
 def _on_sigint(signum, frame) -> None:  # noqa: ARG001 - signal handler API
@@ -213,7 +215,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         elif previous is not None:
             signal.signal(signal.SIGINT, previous)
-    if _SIGINTS or rc == 130:
+    interrupted = bool(_SIGINTS) or rc == 130
+    _SIGINTS.clear()  # a library call after this command in the same process starts with none
+    if interrupted:
         print("microctl: interrupted", file=sys.stderr)
         if argv is None:
             _exit_now(130)

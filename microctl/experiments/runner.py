@@ -44,6 +44,7 @@ from microctl.models.training import (
 )
 from microctl.stage.config import StageConfig
 from microctl.util.progress import Progress
+from microctl.util.signals import raise_if_interrupted
 
 __all__ = ["MoveRecorder", "ExperimentInterrupted", "run_experiment", "BackendFactory"]
 
@@ -112,6 +113,7 @@ class MoveRecorder:
             self._last_backend = backend
             self._last_time_s = 0.0
         s_prev = backend.state
+        raise_if_interrupted()  # a Ctrl-C whose KeyboardInterrupt was lost (microctl.util.signals): stop here
         m = backend.move(u)
         self._last_time_s = m.time_s
         logged = replace(m, time_s=m.time_s + self._clock_offset_s)

@@ -1,4 +1,14 @@
-"""Holding Ctrl-C while a move and its log row are written (one step that an interrupt does not split)."""
+"""Ctrl-C around moves: held while a move and its log row are written (one step that an interrupt
+does not split), and not lost when a compiled library swallows it.
+
+The command line's SIGINT handler (:func:`microctl.cli.main`) records every SIGINT in
+:data:`RECEIVED` before it raises KeyboardInterrupt. That KeyboardInterrupt can be lost on its way
+out (raised inside compiled code, or in a callback Python cannot raise from): ``microctl move``
+on a loaded machine once ran all 400 targets of a sequence after a Ctrl-C and only then exited
+130 (tests/cli/test_move_serve.py). Before a command is sent, :func:`raise_if_interrupted` turns
+a recorded Ctrl-C back into KeyboardInterrupt, so the stage stops at the next move instead of
+running the rest of a sequence.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +17,18 @@ import signal
 import threading
 from typing import Iterator
 
-__all__ = ["interrupts_deferred"]
+__all__ = ["interrupts_deferred", "raise_if_interrupted", "RECEIVED"]
+
+#: SIGINTs the command line's handler received during the current command (cleared when a
+#: command starts; empty for a library caller, whose own handler is left alone).
+RECEIVED: list = []
+
+
+def raise_if_interrupted() -> None:
+    """Raise KeyboardInterrupt if a Ctrl-C was received in this command (it may have been swallowed
+    by compiled code, see the module); call it before a command is sent to the stage."""
+    if RECEIVED:
+        raise KeyboardInterrupt
 
 
 @contextlib.contextmanager

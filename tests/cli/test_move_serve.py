@@ -24,6 +24,7 @@ from microctl.cli import main
 from microctl.cli.commands.serve import OPS, Service, serve_lines
 from microctl.errors import UnreachableTargetError
 from microctl.measurement.log import read_log
+from microctl.util import signals
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs/stage/sim_paper.yaml"
@@ -150,6 +151,44 @@ def test_ctrl_c_during_a_move_still_logs_it(trained, tmp_path):
         signal.signal(signal.SIGINT, previous)
     got = read_log(log, stage.config.stage)
     assert len(got) == 2 and got.seq.tolist() == [0, 1]
+
+
+class _SwallowingController:
+    """A controller whose solve received a Ctrl-C whose KeyboardInterrupt was lost: the command
+    line's handler recorded it (microctl.util.signals.RECEIVED) but no KeyboardInterrupt came out."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def solve(self, *a, **kw):
+        res = self.inner.solve(*a, **kw)
+        signals.RECEIVED.append(signal.SIGINT)
+        return res
+
+
+def test_a_ctrl_c_swallowed_during_the_solve_stops_before_the_command_is_sent(trained, tmp_path):
+    """A Ctrl-C recorded during the solve but lost on its way out (once seen end to end: `move`
+    ran all 400 targets of the next test's sequence, then exited 130): the Operator stops before
+    it sends that move's command, the log holding exactly the moves made."""
+    stage, _, model = trained
+    log = tmp_path / "sw.csv"
+    backend = SimulatedStage(stage.config)
+    ctl = api.Controller(stage, model)
+    try:
+        with api.Operator(ctl, backend, log=log) as op:
+            op.move(5.0)
+            op.controller = _SwallowingController(ctl)
+            with pytest.raises(KeyboardInterrupt):
+                op.move(6.0)
+            assert op.moves == 1
+            state = backend.state.copy()
+        np.testing.assert_array_equal(backend.state, state)
+    finally:
+        signals.RECEIVED.clear()
+    assert len(read_log(log, stage.config.stage)) == 1
 
 
 def test_ctrl_c_on_the_command_line_leaves_the_log_complete(trained, tmp_path):
