@@ -353,7 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", default=",".join(SECTIONS),
                     help=f"comma-separated sections (default: all of {', '.join(SECTIONS)})")
-    ap.add_argument("--jobs", type=int, default=2, help="worker processes for bench_rigs, and paper_scale seed sets run at a time (default 2)")
+    ap.add_argument("--jobs", type=int, default=2,
+                    help="worker processes for bench_rigs, and paper_scale seed sets run at a time (default 2)")
     ap.add_argument("--runs", default=str(ROOT / "runs"), help="where the runs are written (default runs/)")
     ap.add_argument("--docs", default=str(ROOT / "docs" / "generated"), help="where the Markdown goes")
     args = ap.parse_args(argv)

@@ -1,5 +1,5 @@
 """Ctrl-C around moves: held while a move and its log row are written (one step that an interrupt
-does not split), and not lost when a compiled library swallows it.
+does not split), and not lost when its KeyboardInterrupt is.
 
 The command line's SIGINT handler (:func:`microctl.cli.main`) records every SIGINT in
 :data:`RECEIVED` before it raises KeyboardInterrupt. That KeyboardInterrupt can be lost on its way
@@ -25,8 +25,8 @@ RECEIVED: list = []
 
 
 def raise_if_interrupted() -> None:
-    """Raise KeyboardInterrupt if a Ctrl-C was received in this command (it may have been swallowed
-    by compiled code, see the module); call it before a command is sent to the stage."""
+    """Raise KeyboardInterrupt if a Ctrl-C was received in this command (its own KeyboardInterrupt
+    may have been lost, see the module); call it before a command is sent to the stage."""
     if RECEIVED:
         raise KeyboardInterrupt
 
