@@ -139,15 +139,15 @@ def _one_line(exc: BaseException) -> str:
     return str(exc).replace("\r", "\\r").replace("\n", "\\n")
 
 
-#: SIGINTs received during the current :func:`main` (a Ctrl-C a library swallowed, or one that
-#: surfaced as another exception, e.g. ``ImportError: initialization failed`` from a compiled
-#: module being loaded, still ends the command with 130; the moving commands stop at the next
-#: move, :func:`microctl.util.signals.raise_if_interrupted`).
-_SIGINTS: list = RECEIVED
-
-
 def _on_sigint(signum, frame) -> None:  # noqa: ARG001 - signal handler API
-    _SIGINTS.append(signum)
+    """Record the SIGINT in :data:`microctl.util.signals.RECEIVED`, then raise KeyboardInterrupt.
+
+    The record outlives the exception: a Ctrl-C a library swallowed, or one that surfaced as
+    another exception (e.g. ``ImportError: initialization failed`` from a compiled module being
+    loaded), still ends the command with 130, and the moving commands stop before their next
+    move (:func:`microctl.util.signals.raise_if_interrupted`).
+    """
+    RECEIVED.append(signum)
     raise KeyboardInterrupt
 
 
@@ -195,7 +195,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         import os
 
         one_blas_thread(os.environ, sys.modules)
-    _SIGINTS.clear()
+    RECEIVED.clear()
     try:
         previous = signal.signal(signal.SIGINT, _on_sigint)
     except ValueError:  # not the main thread (e.g. a test runner's worker)
@@ -206,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # in a command, or while the command modules are still being imported
         rc = 130
     except BaseException:
-        if not _SIGINTS:
+        if not RECEIVED:
             raise
         rc = 130  # the interrupt surfaced as another exception (an import failing half-way)
     finally:
@@ -215,8 +215,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         elif previous is not None:
             signal.signal(signal.SIGINT, previous)
-    interrupted = bool(_SIGINTS) or rc == 130
-    _SIGINTS.clear()  # a library call after this command in the same process starts with none
+    interrupted = bool(RECEIVED) or rc == 130
+    RECEIVED.clear()  # a library call after this command in the same process starts with none
     if interrupted:
         print("microctl: interrupted", file=sys.stderr)
         if argv is None:
@@ -244,7 +244,7 @@ def _exit_now(status: int) -> None:
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser(argv, lazy=True)
-    if _SIGINTS:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
+    if RECEIVED:  # a Ctrl-C while the command modules loaded, swallowed by an import: stop here
         raise KeyboardInterrupt
     args, extras = parser.parse_known_args(argv)
     if extras:  # reported by the sub-command's parser, which knows the options to suggest

@@ -37,8 +37,8 @@ N(0, v(x)) at the training inputs, :data:`NULL_DRAWS` draws, a fixed seed), whic
 their correlation exactly. On a stage whose scatter is the gauge alone, nothing is selected
 with probability >= 1 - alpha (tested). Once no candidate enters, each selected source's shape
 is re-chosen among the shapes of its quantity with the others in the model (an exchange adds no
-parameter, so the entry tests stand; :func:`_refine_shapes`). The tilt source (below) keeps the conservative
-Bonferroni correction (its direction is not identified under the null).
+parameter, so the entry tests stand; :func:`_refine_shapes`). The tilt source (below) keeps the
+conservative Bonferroni correction (its direction is not identified under the null).
 """
 
 
@@ -428,7 +428,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         thresholds.append(best[2])
         p_values.append(best[0])
         ll, c = ll + best[1], best[4]
-    ll, swaps = _refine_shapes(r2, Phi, names, chosen, [gains, slots], ll, tilt_inputs, tilt)
+    ll, swaps = _refine_shapes(r2, Phi, names, chosen, gains, slots, ll, tilt_inputs, tilt)
     names_out = tuple(names[j] for j in chosen) + (("tilt",) if tilt is not None else ())
     return Selection(tuple(chosen), names_out, tuple(gains), tuple(thresholds), ll,
                      None if tilt is None else np.asarray(tilt, dtype=float), tuple(p_values), tuple(swaps))
@@ -446,8 +446,8 @@ def quantity(name: str) -> str:
     return name.split(":", 1)[0]
 
 
-def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], gains_slots: list, ll: float,
-                   Z: np.ndarray | None, w: np.ndarray | None) -> tuple[float, list[tuple[str, str]]]:
+def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], gains: list[float], slots: list[int],
+                   ll: float, Z: np.ndarray | None, w: np.ndarray | None) -> tuple[float, list[tuple[str, str]]]:
     """Re-choose each selected source's shape among the candidates of its quantity, the others held.
 
     Forward selection fixes a source's shape when it enters, against the fit of that step: a
@@ -456,8 +456,8 @@ def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], ga
     place although, with both in, the right shape has the higher likelihood (seen on stick-slip
     rigs of scripts/rig_families.py with two actuators). An exchange adds no parameter, so the
     entry tests stand; a shape is exchanged where the maximised log-likelihood rises, until a pass
-    exchanges nothing (at most :data:`REFINE_PASSES`). ``chosen`` and the gains are updated in place
-    (``gains_slots``: the step gains, and where each of ``chosen`` is among them).
+    exchanges nothing (at most :data:`REFINE_PASSES`). ``chosen`` and ``gains`` (the step gains;
+    ``slots``: where each of ``chosen`` is among them) are updated in place.
 
     Returns
     -------
@@ -466,7 +466,6 @@ def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], ga
     swaps : list of (str, str)
         (entered as, kept as) per exchange.
     """
-    gains, slots = gains_slots
     swaps = []
     for _ in range(REFINE_PASSES):
         changed = False
@@ -488,7 +487,6 @@ def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], ga
         if not changed:
             break
     return ll, swaps
-
 
 
 def _tilt_option(r2: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: int) -> tuple:

@@ -120,7 +120,7 @@ def test_shape_refinement_exchanges_a_shape_fixed_too_early(afm):
     chosen = [names.index("dq3:abs"), names.index("dq1:sq")]
     ll0, _ = _fit_variance(r**2, Phi[:, chosen])
     gains = [10.0, 20.0]
-    ll, swaps = _refine_shapes(r**2, Phi, names, chosen, [gains, [0, 1]], ll0, None, None)
+    ll, swaps = _refine_shapes(r**2, Phi, names, chosen, gains, [0, 1], ll0, None, None)
     assert swaps == [("dq3:abs", "dq3:sq")]
     assert [names[j] for j in chosen] == ["dq3:sq", "dq1:sq"]
     np.testing.assert_allclose(ll, _fit_variance(r**2, Phi[:, chosen])[0], rtol=0, atol=1e-9)
