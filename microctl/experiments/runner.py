@@ -254,6 +254,11 @@ def _fit(run: _Run, info: dict, round_: int) -> EAFM:
                            "se_selection": model.info.get("se_selection"),
                            "noise": noise_summary(model, run.afm)})
     info["rows"] = int(len(data.y))
+    screened = (model.info.get("noise_selection") or {}).get("screened") or {}
+    if screened.get("rows"):  # microctl.models.outlier_screen; the log keeps them
+        run.say(f"experiment: round {round_}: set aside training-log seq "
+                f"{', '.join(str(int(log.seq[i])) for i in screened['rows'])} as corrupt readings "
+                f"(|z| > {screened['bound']:.2f} under the model fitted without each); results.json lists them")
     return EAFM(run.afm, model)
 
 

@@ -55,7 +55,8 @@ from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives", "quantity"]
+__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives", "quantity",
+           "fit_variance_with", "variance_design"]
 
 #: Residual draws under the current fit for the max-statistic p-values, and their seed; the grid
 #: of a candidate's share (times the mean current variance) its profiled gain is maximised over.
@@ -411,7 +412,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
                           * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
         options = []  # (adjusted p, gain, needed gain, what, c, w)
         for j in order:
-            lj, cj = _fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
+            lj, cj = fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
             g = lj - ll
             options.append((p_rest[int(j)] if g > 0 else 1.0, g, 0.5 * math.log(n), int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
@@ -476,7 +477,7 @@ def _refine_shapes(r2: np.ndarray, Phi: np.ndarray, names, chosen: list[int], ga
                     continue
                 trial = chosen.copy()
                 trial[pos] = k
-                lk, _ = _fit_variance_with(r2, Phi[:, trial], Z, w)
+                lk, _ = fit_variance_with(r2, Phi[:, trial], Z, w)
                 if lk > best_ll + REFINE_MIN_GAIN:
                     best_ll, best_k = lk, k
             if best_k != j:
@@ -509,8 +510,24 @@ def _with_tilt(Phi: np.ndarray, Z: np.ndarray | None, w: np.ndarray | None) -> n
     return Phi if w is None else np.hstack([Phi, np.exp(np.clip(Z @ w, -50, 50))[:, None]])
 
 
-def _fit_variance_with(r2, Phi, Z, w):
-    """:func:`_fit_variance` with, when ``w`` is given, the tilt exp(Z w) as one more fixed feature."""
+def fit_variance_with(r2: np.ndarray, Phi: np.ndarray, Z: np.ndarray | None,
+                      w: np.ndarray | None) -> tuple[float, np.ndarray]:
+    """:func:`_fit_variance` with, when ``w`` is given, the tilt exp(Z w) as one more fixed feature.
+
+    Returns
+    -------
+    loglik : float
+    c : ndarray, shape (1 + p [+ 1],)
+        Floor, the features' coefficients (and the tilt's); the variance is
+        ``variance_design(Phi, Z, w) @ c``.
+    """
     if w is None:
         return _fit_variance(r2, Phi)
     return _fit_variance(r2, _with_tilt(Phi, Z, w))
+
+
+def variance_design(Phi: np.ndarray, Z: np.ndarray | None, w: np.ndarray | None) -> np.ndarray:
+    """``[1, Phi (, exp(Z w))]``, shape (n, 1 + p [+ 1]): the variance model's design, whose product
+    with :func:`fit_variance_with`'s coefficients is the fitted variance at each row."""
+    Phi = np.asarray(Phi, dtype=float)
+    return np.hstack([np.ones((Phi.shape[0], 1)), _with_tilt(Phi, Z, w)])

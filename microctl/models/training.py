@@ -25,6 +25,7 @@ from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import bind_to_stage
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
+from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, tail_bound
 from microctl.util.fields import setting, validate_settings
 
 __all__ = ["AUTO_SPARSE_ROWS", "GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
@@ -108,6 +109,9 @@ NOISE_MODELS = noise_model_names()
 
 #: Family-wise level of each entry step of the noise-source selection (``dictionary``).
 SELECTION_ALPHA = 0.05
+#: Rounds of the corrupt-reading screen (:mod:`microctl.models.outlier_screen`): after rows are set
+#: aside the first fit and the selection are redone, and the screen looks again.
+SCREEN_ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -270,32 +274,22 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
        mean correction f and so the residual r = y - f(x) at the training moves;
     2. :func:`~microctl.models.noise_dictionary.select_features` chooses among the stage's candidate
        sources (and a load tilt along the pose) by evidence, with a multiple-testing discipline;
+       rows whose reading is grossly off under that noise model fitted without them, and under
+       the first model refitted without them, are set aside (:func:`_screened`,
+       :mod:`microctl.models.outlier_screen`) and steps 1-2 redone without them;
     3. the residual model is fitted again with exactly the selected sources as g's prior mean
        (none selected: the paper's constant prior mean), their coefficients inside the bound.
 
-    The selection (names, log-likelihood gains and the gains they needed) is in
+    The selection (names, log-likelihood gains and the gains they needed) and the rows set aside
+    (``"screened"``: 0-based positions in ``data``, their deletion residuals, the bound;
+    :func:`_screened`) are in
     ``info["noise_selection"]``.
     """
     sparse = uses_sparse(len(data.y), st)
-    if sparse:
-        from microctl.gp.sparse import subset_rows
-
-        # the first fit only gives f for the residuals: an exact fit on the rows the sparse model's
-        # hyperparameters are fitted on does (the selection still reads all n residuals), from
-        # one start; f's SE part is chosen there (BIC) once for the fits that follow
-        idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
-        sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
-        first = _fit(sub, afm, replace(st, gp="exact", restarts=1), noise_features_for(afm), "physical", max_time)
-        chosen = first.info.get("se_selection")
-        if chosen is not None:
-            st = replace(st, se="on" if chosen["kept_se"] else "off")
-    else:
-        first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
-    r = data.y - first.predict(data.X).f_mean
-    cands = candidate_features(afm).rescaled(data.X)
+    data, src, screened = _screened(data, afm, st, max_time)
+    st, cands, sel = src.st, src.cands, src.sel
     U = data.X[:, afm.n_s:]
     mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
-    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
     rows = [np.asarray(cands.matrix)[j] for j in sel.indices]
     offs = [float(np.asarray(cands.offset)[j]) for j in sel.indices]
     shapes = [cands.shapes[j] for j in sel.indices]
@@ -314,6 +308,7 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
               "candidates": len(cands.names) + 1}
     if sel.swaps:
         record["shape_swaps"] = [list(sw) for sw in sel.swaps]
+    record["screened"] = screened
     model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time)
     # a source the fit inside the bound does not support (its coefficient within one Laplace
     # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training
@@ -336,6 +331,139 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     record["alternatives"] = {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
     record["n"] = int(len(data.y))
     return replace(model, info={**model.info, "noise_selection": record})
+
+
+def _positions(data: ResidualData, afm: AnalyticForwardModel) -> np.ndarray:
+    """The actuator positions before and after each move, ``[q_prev, K u]`` (eq. 12), standardised
+    (the corrupt-reading screen's neighbourhoods), shape (n, 2 n_q)."""
+    Q = np.hstack([data.X[:, 1:afm.n_s], data.X[:, afm.n_s:] @ afm.K.T])  # s = [t_prev; q_prev]
+    return (Q - Q.mean(axis=0)) / np.maximum(Q.std(axis=0), 1e-12)
+
+
+@dataclass(frozen=True)
+class _Sources:
+    """Steps 1 and 2 of :func:`_fit_dictionary` (:func:`_select_sources`).
+
+    Attributes
+    ----------
+    st : ResidualModelSettings
+        The settings, with f's SE part fixed where the sparse form's first fit chose it.
+    first : FittedVHGPR
+        The first fit (the physical noise model).
+    first_rows : ndarray of int or None
+        The rows of ``data`` it was fitted on (None: every row).
+    r : ndarray, shape (n,)
+        The residual of its mean correction.
+    cands : ShapedFeatures
+        The candidate sources, rescaled to ``data.X``.
+    sel : Selection
+    tilt_in : ndarray, shape (n, n_p)
+        The standardised poses the tilt source grows along.
+    """
+
+    st: ResidualModelSettings
+    first: FittedVHGPR
+    first_rows: np.ndarray | None
+    r: np.ndarray
+    cands: Any
+    sel: Any
+    tilt_in: np.ndarray
+
+
+def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
+                    max_time: float | None) -> _Sources:
+    """Steps 1 and 2 of :func:`_fit_dictionary`: the first fit's residual and the selection."""
+    idx = None
+    if uses_sparse(len(data.y), st):
+        from microctl.gp.sparse import subset_rows
+
+        # the first fit only gives f for the residuals: an exact fit on the rows the sparse model's
+        # hyperparameters are fitted on does (the selection still reads all n residuals), from
+        # one start; f's SE part is chosen there (BIC) once for the fits that follow
+        idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
+        sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
+        first = _fit(sub, afm, replace(st, gp="exact", restarts=1), noise_features_for(afm), "physical", max_time)
+        chosen = first.info.get("se_selection")
+        if chosen is not None:
+            st = replace(st, se="on" if chosen["kept_se"] else "off")
+    else:
+        first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
+    r = data.y - first.predict(data.X).f_mean
+    cands = candidate_features(afm).rescaled(data.X)
+    U = data.X[:, afm.n_s:]
+    tilt_in = (U - U.mean(axis=0)) / np.maximum(U.std(axis=0), 1e-12)
+    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=tilt_in, alpha=SELECTION_ALPHA)
+    return _Sources(st, first, idx, r, cands, sel, tilt_in)
+
+
+def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
+              max_time: float | None) -> tuple[ResidualData, _Sources, dict]:
+    """Steps 1 and 2 of :func:`_fit_dictionary` with the corrupt-reading screen
+    (:mod:`microctl.models.outlier_screen`): rows beyond the bound under the selected sources
+    refitted without them (and their neighbours' scatter) are confirmed with the whole first
+    model refitted without them (:func:`_deletion_z`) against the same bound (the tails of the
+    rows not suspected, :func:`~microctl.models.outlier_screen.tail_bound`); confirmed rows are
+    set aside and steps 1-2 redone, up to :data:`SCREEN_ROUNDS` times.
+
+    Returns
+    -------
+    data : ResidualData
+        Without the rows set aside.
+    sources : _Sources
+        Steps 1-2 on it.
+    record : dict
+        ``rows`` set aside (0-based positions in the given data), their ``z`` (the whole model's
+        deletion residual), ``bound`` (:func:`~microctl.models.outlier_screen.tail_bound`, with
+        its ``tail_nu``; ``gaussian_bound`` beside it), ``alpha``, and ``withheld``: how many rows
+        the screen found beyond the bound when that was more than it may set aside (else 0).
+    """
+    n0 = len(data.y)
+    original = np.arange(n0)
+    tails, nu = bonferroni_bound(n0), float("inf")
+    src = _select_sources(data, afm, st, max_time)
+    rows: list[int] = []
+    zs: list[float] = []
+    withheld = 0
+    for _ in range(SCREEN_ROUNDS):  # a second corrupt reading can hide behind the first
+        room = max_screened(n0) - len(rows)
+        if room <= 0:
+            break
+        found = screen_rows(src.r, src.cands.values(data.X)[:, list(src.sel.indices)],
+                            tilt_inputs=src.tilt_in if src.sel.tilt is not None else None, tilt=src.sel.tilt,
+                            local_inputs=_positions(data, afm), max_rows=room)
+        withheld = found.exceeding if found.withheld else 0
+        tails, nu = found.bound, found.nu
+        confirmed = [(i, z) for i in found.rows if abs(z := _deletion_z(data, afm, src, i, max_time)) > tails]
+        if not confirmed:
+            break
+        rows += [int(original[i]) for i, _ in confirmed]
+        zs += [float(z) for _, z in confirmed]
+        keep = np.setdiff1d(np.arange(len(data.y)), [i for i, _ in confirmed])
+        data, original = ResidualData(X=data.X[keep], y=data.y[keep], x_names=data.x_names), original[keep]
+        src = _select_sources(data, afm, st, max_time)
+    order = np.argsort(rows)
+    return data, src, {"rows": [rows[k] for k in order], "z": [zs[k] for k in order], "bound": float(tails),
+                       "gaussian_bound": float(bonferroni_bound(n0)), "tail_nu": float(nu),
+                       "alpha": SCREEN_ALPHA, "withheld": int(withheld)}
+
+
+def _deletion_z(data: ResidualData, afm: AnalyticForwardModel, src: _Sources, i: int,
+                max_time: float | None) -> float:
+    """Row i's residual against the first model refitted without it (from the fit with it: a warm
+    start, a fraction of a fit's time), standardised by that model's predictive variance there,
+    ``f_var + E[exp(g)]``. With the sparse form's subset fit, a row outside the subset is judged
+    by the first fit as it is (it was not fitted on it)."""
+    model = src.first
+    rows = np.arange(len(data.y)) if src.first_rows is None else np.asarray(src.first_rows)
+    if i in rows:
+        keep = rows[rows != i]
+        sel = model.info.get("se_selection")
+        st = replace(src.st, gp="exact", restarts=1,
+                     se=("on" if sel["kept_se"] else "off") if sel is not None else src.st.se)
+        model = _fit(ResidualData(X=data.X[keep], y=data.y[keep], x_names=data.x_names), afm, st,
+                     noise_features_for(afm), "physical", max_time, warm_start=model)
+    p = model.predict(data.X[i:i + 1])
+    return float((data.y[i] - p.f_mean[0]) / np.sqrt(p.f_var[0] + np.exp(p.g_mean[0] + 0.5 * p.g_var[0])))
 
 
 #: a selected source whose fitted share of g's prior variance stays below this at every training

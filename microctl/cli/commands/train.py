@@ -99,6 +99,9 @@ def _run(args: argparse.Namespace) -> int:
     print(f"train: {len(data.y)} rows{form}, bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
           f"model for stage '{config.stage.name}' written to {args.out}")
     print(f"train: {describe_noise(noise_summary(model, afm))}")
+    screened = describe_screen(model.info.get("noise_selection", {}).get("screened"), log.seq)
+    if screened:
+        print(f"train: {screened}")
     sel = model.info.get("se_selection")
     if sel is not None:
         print("train: mean correction: affine trend in u"
@@ -106,6 +109,22 @@ def _run(args: argparse.Namespace) -> int:
               + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
               f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})")
     return 0
+
+
+def describe_screen(record: dict | None, seq) -> str:
+    """One line on the rows the corrupt-reading screen set aside (:mod:`microctl.models.outlier_screen`),
+    each by its line in the log file (the header is line 1) and its ``seq``; "" when it set aside none
+    and withheld none."""
+    if not record or (not record["rows"] and not record["withheld"]):
+        return ""
+    if not record["rows"]:
+        return (f"note: {record['withheld']} readings are beyond |z| = {record['bound']:.2f} under the noise sources "
+                "fitted without each; that many are not a few corrupt readings but heavier tails than the model's, so "
+                "none was set aside")
+    rows = ", ".join(f"line {i + 2} (seq {int(seq[i])}, z = {z:+.1f})" for i, z in zip(record["rows"], record["z"]))
+    return (f"set aside {len(record['rows'])} reading(s) that the model, fitted without each, puts beyond "
+            f"|z| = {record['bound']:.2f} (family-wise level {record['alpha']:g} for the tails of the other rows; "
+            f"a corrupt reading?): {rows}; the log is unchanged")
 
 
 def describe_noise(summary: dict) -> str:

@@ -1,0 +1,245 @@
+"""Corrupt readings in a training log: found by deletion, named by row, left out of the fit.
+
+A gross error in one reading (a gauge glitch, a reading logged against the wrong command) does
+not show as a large residual of the fitted heteroscedastic model: the noise model is free to
+raise its variance where the error sits. The noise-source selection picks a source that peaks
+there (or the tilt, whose direction the fit chooses), g's GP raises it further, and the row's
+standardised residual looks ordinary (masking), while the selected sources are no longer the
+stage's (``tests/models/test_outlier_screen.py`` plants such a reading).
+
+The screen therefore judges each suspect row by a variance fitted *without* it:
+
+1. on the residual r of the mean correction and the selected sources' variance model
+   ``v = c_0 + sum_j c_j phi_j (+ tilt)`` (:mod:`microctl.models.noise_dictionary`), the rows with
+   the largest ``r^2 / v`` and those with the largest ``|r|`` (:data:`SCREEN_TOP` of each: a
+   masked row can have an ordinary ``r^2 / v``, never an ordinary ``|r|`` if its error is gross)
+   are the suspects;
+2. for each suspect i the coefficients are refitted on every other row (the sources and the
+   tilt's direction held), and ``z_(-i) = r_i / sqrt(v_(-i)(x_i))`` is its deletion residual: under
+   the model it is standard normal whatever row i holds;
+3. the parametric sources describe a stage's scatter only in part (g's GP models the rest), so
+   a suspect is also judged against the scatter of its
+   :data:`SCREEN_NEIGHBOURS` nearest moves (in the standardised actuator positions before and
+   after the move, which every source of the dictionary is a function of): where their median
+   ``r_j^2 / v_(-i)(x_j)`` is above chi2_1's median, the suspect's variance is raised by that
+   ratio (never lowered, so a stage the model describes is judged as in step 2);
+4. a suspect is found (:func:`screen_rows`) when ``|z_(-i)|`` exceeds the Bonferroni bound of
+   family-wise level :data:`SCREEN_ALPHA` over the n rows (two-sided) for the tails the rows
+   not suspected show under the sources (:func:`tail_bound`: Gaussian when they look Gaussian;
+   where a ball lifts off, as on the paper-scale rig, the sources leave a scatter with much
+   heavier tails, and a Gaussian bound set aside legitimate moves): a stage whose scatter the
+   model describes sets aside no row with probability at most about ``SCREEN_ALPHA``;
+5. training (:func:`microctl.models.training._screened`) confirms each row this screen finds
+   with the whole first model (f, g's GP and its stick-slip prior) refitted without the row: the
+   row is set aside only if its residual is beyond the same bound under that model's
+   predictive variance too. (The whole model's own residuals cannot give the tails: g's GP
+   takes up each large one when it is in the fit, so they look Gaussian while the same rows,
+   left out, are far out.)
+
+When more rows than :data:`SCREEN_MAX_SHARE` of the log exceed the bound, the exceedances are
+not a few corrupt readings but scatter with heavier tails than the model's (or a noise structure
+the dictionary does not hold): then no row is set aside, and the record says so.
+
+Nothing is lost: the log is not changed; the rows set aside and their deletion residuals (the
+whole model's) are in the model's ``info["noise_selection"]["screened"]`` and ``microctl train``
+prints them by their line in the log file and their ``seq``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from microctl.models.noise_dictionary import fit_variance_with, variance_design
+
+__all__ = ["SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
+           "deletion_residuals", "screen_rows", "bonferroni_bound", "max_screened", "tail_bound"]
+
+#: Family-wise level of the screen over a log's rows (two-sided). Chosen before it was measured
+#: on the rig families: a legitimate row set aside costs the model a real observation of the
+#: stage's scatter, a corrupt one kept costs it the noise model, so the screen is meant for
+#: gross errors only.
+SCREEN_ALPHA = 1e-3
+#: Rows with the largest standardised residual, and rows with the largest residual, whose
+#: deletion residual is computed.
+SCREEN_TOP = 5
+#: Most rows set aside, as a share of the log (at least 1 row); more exceedances: none set aside.
+SCREEN_MAX_SHARE = 0.02
+#: Nearest moves (in the standardised actuator positions before and after the move) whose
+#: scatter a suspect is also judged against (step 3 of the module docstring).
+SCREEN_NEIGHBOURS = 20
+#: Fewest degrees of freedom :func:`tail_bound` reads from the data (a t with kurtosis 9; towards
+#: 2 degrees of freedom the bound would grow without limit and find nothing).
+MIN_NU = 5.0
+#: Median of chi-squared with one degree of freedom: the median squared standardised residual of
+#: moves the variance model describes.
+_CHI2_1_MEDIAN = 0.45493642311957283
+
+
+@dataclass(frozen=True)
+class Screen:
+    """What :func:`screen_rows` found.
+
+    Attributes
+    ----------
+    rows : tuple of int
+        Rows set aside (0-based positions in the residual vector).
+    z : tuple of float
+        Their deletion residuals ``z_(-i)``.
+    bound : float
+        The bound |z_(-i)| had to exceed (:func:`tail_bound` of the rows not suspected).
+    exceeding : int
+        Suspects beyond the bound (more than ``rows`` when the share cap withheld them).
+    withheld : bool
+        True when more rows than the cap exceeded the bound, so none was set aside.
+    nu : float
+        Degrees of freedom of the tails the bound is for (inf: Gaussian).
+    """
+
+    rows: tuple[int, ...]
+    z: tuple[float, ...]
+    bound: float
+    exceeding: int
+    withheld: bool = False
+    nu: float = float("inf")
+
+
+def max_screened(n: int) -> int:
+    """Most rows of an n-row log the screen sets aside (:data:`SCREEN_MAX_SHARE`, at least 1)."""
+    return max(1, int(SCREEN_MAX_SHARE * n))
+
+
+def bonferroni_bound(n: int, alpha: float = SCREEN_ALPHA) -> float:
+    """|z| beyond which one of n standard normal residuals is an outlier at family-wise level alpha."""
+    return -float(NormalDist().inv_cdf(alpha / (2.0 * max(int(n), 1))))  # the lower tail: no 1 - tiny
+
+
+def tail_bound(z: np.ndarray, n: int, alpha: float = SCREEN_ALPHA) -> tuple[float, float]:
+    """The Bonferroni bound for n residuals with the tails the bulk of ``z`` shows.
+
+    A stage's scatter need not be Gaussian (where a ball lifts off, the reading is a kink
+    averaged over the scatter), and a Gaussian bound then sets aside its legitimate tail. The
+    tails are read from the ratio of the 95 % and 50 % quantiles of ``|z|`` (2.906 for a
+    Gaussian; gross rows raise the 95 % quantile, so the caller leaves out the rows it suspects):
+    the Student t whose ratio matches gives
+    the bound, at unit variance, ``t_nu.isf(alpha / 2n) sqrt((nu - 2) / nu)``. A ratio at or
+    below the Gaussian's gives the Gaussian bound (:func:`bonferroni_bound`).
+
+    Parameters
+    ----------
+    z : ndarray, shape (m,)
+        Standardised residuals of the rows under the fitted model (unit variance if it is right).
+    n : int
+        Rows the bound is over.
+    alpha : float
+
+    Returns
+    -------
+    bound : float
+    nu : float
+        The t's degrees of freedom (inf: Gaussian), at least :data:`MIN_NU`.
+    """
+    from scipy import optimize, stats  # here, not at import: the controller reads no scipy
+
+    a = np.abs(np.asarray(z, dtype=float))
+    ratio = float(np.quantile(a, 0.95) / max(np.quantile(a, 0.5), 1e-300))
+
+    def t_ratio(nu: float) -> float:
+        return float(stats.t.isf(0.025, nu) / stats.t.isf(0.25, nu))
+
+    if not np.isfinite(ratio) or ratio <= t_ratio(1e6):
+        return bonferroni_bound(n, alpha), float("inf")
+    nu = MIN_NU if ratio >= t_ratio(MIN_NU) else float(optimize.brentq(lambda v: t_ratio(v) - ratio, MIN_NU, 1e6))
+    return float(stats.t.isf(alpha / (2.0 * max(int(n), 1)), nu) * np.sqrt((nu - 2.0) / nu)), nu
+
+
+def deletion_residuals(residual: np.ndarray, Phi: np.ndarray, rows: np.ndarray, *,
+                       tilt_inputs: np.ndarray | None = None, tilt: np.ndarray | None = None,
+                       local_inputs: np.ndarray | None = None, neighbours: int = SCREEN_NEIGHBOURS) -> np.ndarray:
+    """Each given row's residual standardised by the variance model refitted without it (and,
+    with ``local_inputs``, by the scatter of its nearest moves where that is larger).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+        Residual of the mean correction, µm.
+    Phi : ndarray, shape (n, p)
+        The selected sources at the training inputs (p may be 0: the floor alone).
+    rows : ndarray of int, shape (k,)
+    tilt_inputs, tilt : ndarray, shapes (n, m) and (m,), optional
+        The tilt source's inputs and its direction (held), when the selection took it.
+    local_inputs : ndarray, shape (n, l), optional
+        Coordinates in which a row's nearest moves are found (standardised).
+    neighbours : int
+        How many nearest moves.
+
+    Returns
+    -------
+    ndarray, shape (k,)
+        ``r_i / sqrt(v_(-i)(x_i) max(1, m_i))`` with ``m_i`` the median of ``r_j^2 / v_(-i)(x_j)``
+        over row i's nearest moves divided by chi2_1's median (``m_i = 1`` without ``local_inputs``).
+    """
+    r = np.asarray(residual, dtype=float)
+    Phi = np.asarray(Phi, dtype=float).reshape(len(r), -1)
+    D = variance_design(Phi, tilt_inputs, tilt)
+    out = np.empty(len(rows))
+    for k, i in enumerate(np.asarray(rows, dtype=int)):
+        keep = np.ones(len(r), dtype=bool)
+        keep[i] = False
+        Z = None if tilt_inputs is None else tilt_inputs[keep]
+        _, c = fit_variance_with(r[keep] ** 2, Phi[keep], Z, tilt)
+        v = np.maximum(D @ c, 1e-300)
+        local = 1.0
+        if local_inputs is not None and neighbours > 0:
+            d2 = np.sum((local_inputs - local_inputs[i]) ** 2, axis=1)
+            d2[i] = np.inf
+            near = np.argsort(d2)[: min(neighbours, len(r) - 1)]
+            local = max(1.0, float(np.median(r[near] ** 2 / v[near])) / _CHI2_1_MEDIAN)
+        out[k] = r[i] / np.sqrt(v[i] * local)
+    return out
+
+
+def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarray | None = None,
+                tilt: np.ndarray | None = None, local_inputs: np.ndarray | None = None,
+                alpha: float = SCREEN_ALPHA, top: int = SCREEN_TOP, max_rows: int | None = None) -> Screen:
+    """Rows whose deletion residual is beyond the Bonferroni bound (module docstring).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+    Phi : ndarray, shape (n, p)
+        The selected sources at the training inputs.
+    tilt_inputs, tilt, local_inputs : optional
+        As in :func:`deletion_residuals`.
+    alpha : float
+        Family-wise level over the n rows.
+    top : int
+        Suspects examined: this many with the largest ``r^2 / v`` under the fit on every row, and
+        this many with the largest ``|r|``.
+    max_rows : int, optional
+        Most rows set aside (default :func:`max_screened` of n); more beyond the bound: none.
+
+    Returns
+    -------
+    Screen
+    """
+    r = np.asarray(residual, dtype=float)
+    n = len(r)
+    Phi = np.asarray(Phi, dtype=float).reshape(n, -1)
+    _, c = fit_variance_with(r ** 2, Phi, tilt_inputs, tilt)
+    v = np.maximum(variance_design(Phi, tilt_inputs, tilt) @ c, 1e-300)
+    # the suspects: the largest residuals against the fitted variance, and the largest in µm (a
+    # source that peaks at a corrupt row can pull its standardised residual down to nothing)
+    k = min(top, n)
+    suspects = np.unique(np.concatenate([np.argsort(-(r * r) / v)[:k], np.argsort(-np.abs(r))[:k]]))
+    z = deletion_residuals(r, Phi, suspects, tilt_inputs=tilt_inputs, tilt=tilt, local_inputs=local_inputs)
+    bound, nu = tail_bound(np.delete(r / np.sqrt(v), suspects), n, alpha)  # the tails of the rows not suspected
+    out = np.abs(z) > bound
+    cap = max_screened(n) if max_rows is None else int(max_rows)
+    if int(out.sum()) > cap:
+        return Screen((), (), bound, int(out.sum()), withheld=True, nu=nu)
+    order = np.argsort(suspects[out])
+    return Screen(tuple(int(i) for i in suspects[out][order]), tuple(float(x) for x in z[out][order]), bound,
+                  int(out.sum()), nu=nu)
