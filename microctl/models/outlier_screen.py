@@ -85,7 +85,8 @@ class Screen:
     Attributes
     ----------
     rows : tuple of int
-        Rows set aside (0-based positions in the residual vector).
+        Rows found (0-based positions in the residual vector; training sets them aside once the
+        whole model confirms them).
     z : tuple of float
         Their deletion residuals ``z_(-i)``.
     bound : float
@@ -123,9 +124,9 @@ def tail_bound(z: np.ndarray, n: int, alpha: float = SCREEN_ALPHA) -> tuple[floa
     averaged over the scatter), and a Gaussian bound then sets aside its legitimate tail. The
     tails are read from the ratio of the 95 % and 50 % quantiles of ``|z|`` (2.906 for a
     Gaussian; gross rows raise the 95 % quantile, so the caller leaves out the rows it suspects):
-    the Student t whose ratio matches gives
-    the bound, at unit variance, ``t_nu.isf(alpha / 2n) sqrt((nu - 2) / nu)``. A ratio at or
-    below the Gaussian's gives the Gaussian bound (:func:`bonferroni_bound`).
+    the Student t whose ratio matches gives the bound, at unit variance,
+    ``t_nu.isf(alpha / 2n) sqrt((nu - 2) / nu)``. A ratio at or below the Gaussian's gives the
+    Gaussian bound (:func:`bonferroni_bound`).
 
     Parameters
     ----------
@@ -204,7 +205,8 @@ def deletion_residuals(residual: np.ndarray, Phi: np.ndarray, rows: np.ndarray, 
 def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarray | None = None,
                 tilt: np.ndarray | None = None, local_inputs: np.ndarray | None = None,
                 alpha: float = SCREEN_ALPHA, top: int = SCREEN_TOP, max_rows: int | None = None) -> Screen:
-    """Rows whose deletion residual is beyond the Bonferroni bound (module docstring).
+    """Rows whose deletion residual is beyond the bound for the other rows' tails (module docstring,
+    steps 1-4).
 
     Parameters
     ----------

@@ -7,6 +7,8 @@ physics, stick-slip and log writer). Seeds fixed; tolerances stated with each as
 
 from __future__ import annotations
 
+import contextlib
+import io
 from dataclasses import replace
 
 import independent_stage as ind
@@ -16,10 +18,10 @@ from conftest import CONFIGS
 
 from microctl.models.noise_dictionary import fit_variance_with, variance_design
 from microctl.models.outlier_screen import (
+    MIN_NU,
     SCREEN_ALPHA,
     bonferroni_bound,
     deletion_residuals,
-    MIN_NU,
     max_screened,
     screen_rows,
     tail_bound,
@@ -148,6 +150,7 @@ def test_train_sets_aside_a_corrupt_reading_of_an_independent_stage_and_keeps_it
     from microctl.cli import main
     from microctl.measurement.log import read_log
     from microctl.models.afm import AnalyticForwardModel
+    from microctl.models.eafm import load_residual_model
     from microctl.models.training import residual_dataset, train_residual_model
     from microctl.stage.config import load_stage_config
 
@@ -159,36 +162,17 @@ def test_train_sets_aside_a_corrupt_reading_of_an_independent_stage_and_keeps_it
     run = ind.run(truth, ind.random_moves(geo, 150, rng), rng)
     cfg = load_stage_config(path)
     afm = AnalyticForwardModel(cfg.stage)
-    selected = {}
-    for name, r in (("clean", run), ("corrupt", run.corrupted([(75, "t", float(run.t[75] + 5.0))]))):
-        r.write_log(tmp_path / f"{name}.csv")
-        model = train_residual_model(residual_dataset(read_log(tmp_path / f"{name}.csv", cfg.stage), afm), afm)
-        sel = model.info["noise_selection"]
-        selected[name] = sel["selected"]
-        assert sel["screened"]["rows"] == ([] if name == "clean" else [75]), (name, sel["screened"])
-    assert selected["corrupt"] == selected["clean"] and selected["clean"], selected
+    run.write_log(tmp_path / "clean.csv")
+    clean = train_residual_model(residual_dataset(read_log(tmp_path / "clean.csv", cfg.stage), afm), afm)
+    assert clean.info["noise_selection"]["screened"]["rows"] == [], clean.info["noise_selection"]["screened"]
+    run.corrupted([(75, "t", float(run.t[75] + 5.0))]).write_log(tmp_path / "corrupt.csv")
     before = (tmp_path / "corrupt.csv").read_bytes()
     out = tmp_path / "m.npz"
-    import contextlib
-    import io
-
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         assert main(["train", str(tmp_path / "corrupt.csv"), "--config", str(path), "-o", str(out)]) == 0
+    sel = load_residual_model(out).info["noise_selection"]
+    assert sel["screened"]["rows"] == [75], sel["screened"]
+    assert sel["selected"] == clean.info["noise_selection"]["selected"] and sel["selected"], sel["selected"]
     assert "set aside 1 reading(s)" in buf.getvalue() and "line 77 (seq 75," in buf.getvalue(), buf.getvalue()
     assert (tmp_path / "corrupt.csv").read_bytes() == before
-
-
-def test_train_describes_what_the_screen_did_by_log_line_and_seq():
-    """The line ``microctl train`` prints: nothing when no row was set aside or withheld; each row
-    by its line in the file (header = line 1, so row i is line i + 2) and its seq; the withheld
-    case says none was set aside."""
-    from microctl.cli.commands.train import describe_screen
-
-    seq = np.array([10, 11, 12, 13])
-    assert describe_screen(None, seq) == ""
-    assert describe_screen({"rows": [], "z": [], "bound": 4.5, "alpha": 1e-3, "withheld": 0}, seq) == ""
-    line = describe_screen({"rows": [2], "z": [-7.25], "bound": 4.5, "alpha": 1e-3, "withheld": 0}, seq)
-    assert "line 4 (seq 12, z = -7.2)" in line and "|z| = 4.50" in line and "log is unchanged" in line
-    line = describe_screen({"rows": [], "z": [], "bound": 4.5, "alpha": 1e-3, "withheld": 9}, seq)
-    assert line.startswith("note: 9 readings") and "none was set aside" in line
