@@ -176,3 +176,18 @@ def test_train_sets_aside_a_corrupt_reading_of_an_independent_stage_and_keeps_it
     assert sel["selected"] == clean.info["noise_selection"]["selected"] and sel["selected"], sel["selected"]
     assert "set aside 1 reading(s)" in buf.getvalue() and "line 77 (seq 75," in buf.getvalue(), buf.getvalue()
     assert (tmp_path / "corrupt.csv").read_bytes() == before
+
+
+def test_train_describes_what_the_screen_did_by_log_line_and_seq():
+    """The line ``microctl train`` prints: nothing when no row was set aside or withheld; each row
+    by its line in the file (header = line 1, so row i is line i + 2) and its seq; the withheld
+    case says none was set aside."""
+    from microctl.cli.commands.train import describe_screen
+
+    seq = np.array([10, 11, 12, 13])
+    assert describe_screen(None, seq) == ""
+    assert describe_screen({"rows": [], "z": [], "bound": 4.5, "alpha": 1e-3, "withheld": 0}, seq) == ""
+    line = describe_screen({"rows": [2], "z": [-7.25], "bound": 4.5, "alpha": 1e-3, "withheld": 0}, seq)
+    assert "line 4 (seq 12, z = -7.2)" in line and "|z| = 4.50" in line and "log is unchanged" in line
+    line = describe_screen({"rows": [], "z": [], "bound": 4.5, "alpha": 1e-3, "withheld": 9}, seq)
+    assert line.startswith("note: 9 readings") and "none was set aside" in line
