@@ -288,8 +288,7 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     sparse = uses_sparse(len(data.y), st)
     data, src, screened = _screened(data, afm, st, max_time)
     st, cands, sel = src.st, src.cands, src.sel
-    U = data.X[:, afm.n_s:]
-    mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
+    mu, sd = src.pose_mean, src.pose_scale
     rows = [np.asarray(cands.matrix)[j] for j in sel.indices]
     offs = [float(np.asarray(cands.offset)[j]) for j in sel.indices]
     shapes = [cands.shapes[j] for j in sel.indices]
@@ -357,8 +356,8 @@ class _Sources:
     cands : ShapedFeatures
         The candidate sources, rescaled to ``data.X``.
     sel : Selection
-    tilt_in : ndarray, shape (n, n_p)
-        The standardised poses the tilt source grows along.
+    pose_mean, pose_scale : ndarray, shape (n_p,)
+        The standardisation of the poses u the tilt source grows along.
     """
 
     st: ResidualModelSettings
@@ -367,7 +366,12 @@ class _Sources:
     r: np.ndarray
     cands: Any
     sel: Any
-    tilt_in: np.ndarray
+    pose_mean: np.ndarray
+    pose_scale: np.ndarray
+
+    def tilt_inputs(self, data: ResidualData, n_s: int) -> np.ndarray:
+        """The standardised poses of ``data``, shape (n, n_p)."""
+        return (data.X[:, n_s:] - self.pose_mean) / self.pose_scale
 
 
 def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
@@ -383,17 +387,21 @@ def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
         sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
         first = _fit(sub, afm, replace(st, gp="exact", restarts=1), noise_features_for(afm), "physical", max_time)
-        chosen = first.info.get("se_selection")
-        if chosen is not None:
-            st = replace(st, se="on" if chosen["kept_se"] else "off")
+        st = _with_chosen_se(st, first)
     else:
         first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
     r = data.y - first.predict(data.X).f_mean
     cands = candidate_features(afm).rescaled(data.X)
     U = data.X[:, afm.n_s:]
-    tilt_in = (U - U.mean(axis=0)) / np.maximum(U.std(axis=0), 1e-12)
-    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=tilt_in, alpha=SELECTION_ALPHA)
-    return _Sources(st, first, idx, r, cands, sel, tilt_in)
+    mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
+    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
+    return _Sources(st, first, idx, r, cands, sel, mu, sd)
+
+
+def _with_chosen_se(st: ResidualModelSettings, model: FittedVHGPR) -> ResidualModelSettings:
+    """``st`` with f's SE part fixed to what ``model``'s fit chose (``se: auto``), else ``st``."""
+    chosen = model.info.get("se_selection")
+    return st if chosen is None else replace(st, se="on" if chosen["kept_se"] else "off")
 
 
 def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
@@ -429,7 +437,8 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
         if room <= 0:
             break
         found = screen_rows(src.r, src.cands.values(data.X)[:, list(src.sel.indices)],
-                            tilt_inputs=src.tilt_in if src.sel.tilt is not None else None, tilt=src.sel.tilt,
+                            tilt_inputs=src.tilt_inputs(data, afm.n_s) if src.sel.tilt is not None else None,
+                            tilt=src.sel.tilt,
                             local_inputs=_positions(data, afm), max_rows=room)
         withheld = found.exceeding if found.withheld else 0
         tails, nu = found.bound, found.nu
@@ -457,9 +466,7 @@ def _deletion_z(data: ResidualData, afm: AnalyticForwardModel, src: _Sources, i:
     rows = np.arange(len(data.y)) if src.first_rows is None else np.asarray(src.first_rows)
     if i in rows:
         keep = rows[rows != i]
-        sel = model.info.get("se_selection")
-        st = replace(src.st, gp="exact", restarts=1,
-                     se=("on" if sel["kept_se"] else "off") if sel is not None else src.st.se)
+        st = _with_chosen_se(replace(src.st, gp="exact", restarts=1), model)
         model = _fit(ResidualData(X=data.X[keep], y=data.y[keep], x_names=data.x_names), afm, st,
                      noise_features_for(afm), "physical", max_time, warm_start=model)
     p = model.predict(data.X[i:i + 1])
