@@ -108,6 +108,27 @@ Every family except ``clean`` also has a driver scatter of 0.01 µm per actuator
     ``stick_slip`` plus one of ``stroke_patch, light_ball, settling, reversal, stiction,
     extension`` (drawn per rig), independent (variances add).
 
+Two more, written down on 2026-11-27 before any model was run on them (their scatter enters
+at the reading, after the equilibrium, not through the actuators; neither is drawn by ``mix``,
+whose rigs stay as they were):
+
+``gauge_tilt``
+    A capacitance gauge over a tilted target: the gap varies across the probe's face, so the
+    gauge's noise (its electronics referred to the gap) and its pick-up of the platform's
+    lateral vibration grow with the target's tilt. Every reading at a pose gets, besides the
+    gauge noise, an independent N(0, sigma_r²) with sigma_r = a (theta / theta_max)^k, theta =
+    sqrt(rx² + ry²) the platform's tilt (mrad) and theta_max the largest tilt at the vertices
+    of the workspace polytope; a ~ U(0.1, 0.3), k ~ U(1, 2).
+``hinge_slip``
+    A flexure hinge with a dry-friction contact (a leaf clamped between plates that slips in
+    its clamp): the platform's rotation about each tilt axis slips by a random fraction of the
+    rotation the move makes there, and the slip stays (a re-read sees it). The actual rx, ry
+    after a move are the equilibrium's plus N(0, (c_x |drx|)²) and N(0, (c_y |dry|)²), drx and
+    dry the change of the noise-free tilt over the move; c_x, c_y ~ U(0.02, 0.06). So the
+    reading's std is sqrt((c_x L_x drx)² + (c_y L_y dry)²), L the reading's sensitivity to
+    rx, ry (the tool's lever arms): a step that tilts the platform is noisy whichever
+    actuators make it, a pure lift is not.
+
 Usage: ``make_family_rig(family, seed)`` -> :class:`FamilyRig`; ``rig.stage(seed)`` ->
 :class:`FamilyStage` (a ``StageBackend``: ``move``, ``read``, ``true_mean``, ``true_var``).
 """
