@@ -135,6 +135,7 @@ Usage: ``make_family_rig(family, seed)`` -> :class:`FamilyRig`; ``rig.stage(seed
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -156,7 +157,9 @@ DRIVER_STD_UM = 0.01
 CONTACT_MARGIN_SIGMAS = 4.5
 _FD_UM = 1e-3
 OTHERS = ("stroke_patch", "light_ball", "settling", "reversal", "stiction", "extension")
-FAMILIES = ("clean", "stick_slip", *OTHERS, "mix")
+#: Families whose scatter enters at the reading (after the equilibrium); not drawn by ``mix``.
+READING = ("gauge_tilt", "hinge_slip")
+FAMILIES = ("clean", "stick_slip", *OTHERS, "mix", *READING)
 
 
 # --------------------------------------------------------------------------- noise structures
@@ -196,7 +199,30 @@ def _draw_term(kind: str, r: np.random.Generator) -> dict:
         acts = _some(r)
         return {"kind": kind, "act": acts, "v": [float(r.uniform(0.1, 0.3)) for _ in acts],
                 "p": [float(r.uniform(1.0, 3.0)) for _ in acts]}
+    if kind == "gauge_tilt":  # theta_max is set from the rig's workspace (make_family_rig)
+        return {"kind": kind, "act": [], "a": float(r.uniform(0.1, 0.3)), "k": float(r.uniform(1.0, 2.0))}
+    if kind == "hinge_slip":
+        return {"kind": kind, "act": [], "c": [float(r.uniform(0.02, 0.06)) for _ in range(2)]}
     raise ValueError(f"unknown noise term {kind!r}")
+
+
+def _tilt_var(terms: list[dict], p: np.ndarray) -> np.ndarray:
+    """Variance (µm²) the ``gauge_tilt`` terms add to a reading at the poses p (m, 3: z, rx, ry), shape (m,)."""
+    out = np.zeros(p.shape[0])
+    for t in terms:
+        if t["kind"] == "gauge_tilt":
+            theta = np.hypot(p[:, 1], p[:, 2])
+            out += (t["a"] * (theta / t["theta_max"]) ** t["k"]) ** 2
+    return out
+
+
+def _slip_sd(terms: list[dict], p_prev: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Std (mrad) of the ``hinge_slip`` terms' slip of rx and ry over moves p_prev -> p, shape (m, 2)."""
+    out = np.zeros((p.shape[0], 2))
+    for t in terms:
+        if t["kind"] == "hinge_slip":
+            out = np.sqrt(out ** 2 + (np.asarray(t["c"])[None, :] * np.abs(p[:, 1:3] - p_prev[:, 1:3])) ** 2)
+    return out
 
 
 def _term_std(t: dict, q_prev: np.ndarray, q: np.ndarray, reverses: np.ndarray, force_n: np.ndarray,
@@ -316,6 +342,15 @@ def _light_gap(d: dict, ball: int, fraction: float) -> float:
     return float((1.0 - fraction) * f0 / (f0 - f1))
 
 
+def _theta_max(config: StageConfig) -> float:
+    """The largest platform tilt (mrad) at the vertices of the workspace polytope (noise-free)."""
+    afm = AnalyticForwardModel(config.stage)
+    truth = SimulatedStage(config).truth
+    q = RedundantSet(afm).vertices @ afm.K.T
+    p, _ = truth.pose(truth.actual_positions(q, np.ones_like(q)))
+    return float(np.max(np.hypot(p[:, 1], p[:, 2])))
+
+
 def make_family_rig(family: str, seed: int) -> FamilyRig:
     """The rig of ``family`` and ``seed`` (redrawn until every ball is loaded over the workspace)."""
     if family not in FAMILIES:
@@ -329,6 +364,9 @@ def make_family_rig(family: str, seed: int) -> FamilyRig:
             t["gap_um"] = _light_gap(d, t["ball"], t["fraction"])
             d["backend"]["simulated"]["effects"]["contact_loss"] = [{"actuator": t["ball"] + 1, "gap_um": t["gap_um"]}]
         cfg = parse_stage_config(d, f"<{family} rig {seed}>")
+        for t in terms:
+            if t["kind"] == "gauge_tilt":
+                t["theta_max"] = _theta_max(cfg)
         if _all_balls_loaded(cfg):
             return FamilyRig(family, seed, cfg, terms, 0.0 if family == "clean" else DRIVER_STD_UM, draw)
     raise RuntimeError(f"{family} rig {seed}: no well-preloaded draw in 20 tries")
@@ -368,6 +406,12 @@ class FamilyStage(StageBackend):
         self._q_cmd = np.zeros(self.stage.n_act)
         self.direction = np.ones(self.stage.n_act)
         self._p = self.model.p_zero.copy()
+        self._p_nominal = self.model.p_zero.copy()  # the noise-free pose (the hinge's slip is measured on it)
+        # the reading's sensitivity to rx and ry (µm per mrad; the families' gauge is linear)
+        bump = self.model.p_zero[None, :] + _FD_UM * np.eye(3)[1:]
+        base = self.truth.reading(self.model.p_zero[None, :], 0.0)
+        self.tilt_lever = (self.truth.reading(bump, 0.0) - base) / _FD_UM
+        self._slips = any(t["kind"] == "hinge_slip" for t in rig.terms)
         self.time_s = 0.0
         self.move_time_s = rig.config.backend.simulated.move_time_s
 
@@ -402,11 +446,13 @@ class FamilyStage(StageBackend):
         q2 = q[None, :]
         dq = q2 - self._q_cmd[None, :]
         new_dir, rev = self._directions(dq, self.direction[None, :])
-        _, _, _, _, force = self._nominal(q2, new_dir)
+        _, p_nom, _, _, force = self._nominal(q2, new_dir)
         sd = self.actuator_std(self._q_cmd[None, :], q2, rev, force)[0]
         q_act = self.truth.actual_positions(q2, new_dir)[0] + sd * self._rng_act.standard_normal(q.size)
         p, _ = self.truth.pose(q_act[None, :])
-        self._p, self._q_cmd, self.direction = p[0], q.copy(), new_dir[0]
+        if self._slips:  # drawn only on rigs that have the term (the other families' streams are unchanged)
+            p[0, 1:3] += _slip_sd(self.rig.terms, self._p_nominal[None, :], p_nom)[0] * self._rng_act.standard_normal(2)
+        self._p, self._q_cmd, self.direction, self._p_nominal = p[0], q.copy(), new_dir[0], p_nom[0]
         self.time_s += self.move_time_s
         t = self.read()
         self._set_state(t, q)
@@ -416,8 +462,8 @@ class FamilyStage(StageBackend):
         """A gauge reading of the current pose (one gauge-noise draw), µm."""
         if self._closed:
             raise BackendError("the backend is closed")
-        return float(self.truth.reading(self._p[None, :], self.time_s)[0]
-                     + self.gauge_std_um * self._rng_gauge.standard_normal())
+        std = math.sqrt(self.gauge_std_um ** 2 + float(_tilt_var(self.rig.terms, self._p[None, :])[0]))
+        return float(self.truth.reading(self._p[None, :], self.time_s)[0] + std * self._rng_gauge.standard_normal())
 
     # ---- truth -------------------------------------------------------------------------
     def _setup(self, s: np.ndarray, u: np.ndarray):
@@ -444,13 +490,20 @@ class FamilyStage(StageBackend):
         bumped = np.repeat(q_act[:, None, :], n, axis=1) + _FD_UM * np.eye(n)[None, :, :]
         pb, _ = self.truth.pose(bumped.reshape(m * n, n))
         S = (self._read_mean(pb).reshape(m, n) - mean[:, None]) / _FD_UM
-        var = np.sum(S * S * sd * sd, axis=1) + self.gauge_std_um ** 2
+        var = np.sum(S * S * sd * sd, axis=1) + self.gauge_std_um ** 2 + self._reading_var(q_prev, p)
         # the balls' compressions respond to the actuator errors affinely too (rows: bumped actuator)
         hb = self.model.nd * self.model.gain * bumped.reshape(m * n, n) - self.model.gap_um
         C = ((hb - pb @ self.model.A.T).reshape(m, n, n) - comp[:, None, :]) / _FD_UM
         comp_sd = np.sqrt(np.einsum("mji,mj->mi", C * C, sd * sd))
         exact = np.all(active, axis=1) & np.all(comp > CONTACT_MARGIN_SIGMAS * comp_sd, axis=1)
         return mean, var, exact
+
+    def _reading_var(self, q_prev: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Variance the reading-level terms add to moves from q_prev (m, n_q) to the noise-free
+        poses p (m, 3), shape (m,): the tilted gauge's, and the hinge's slip through the levers."""
+        _, p_prev, _, _, _ = self._nominal(q_prev[:1], self.direction[None, :])
+        slip = _slip_sd(self.rig.terms, np.broadcast_to(p_prev, p.shape), p)
+        return _tilt_var(self.rig.terms, p) + np.sum((slip * self.tilt_lever[None, :]) ** 2, axis=1)
 
     def mc_moments(self, s: np.ndarray, u: np.ndarray, n_draws: int = 1000, seed: int = 0
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -464,11 +517,14 @@ class FamilyStage(StageBackend):
             Common random numbers for every row.
         """
         q_prev, q, new_dir, rev = self._setup(s, u)
-        q_act, _, _, _, force = self._nominal(q, new_dir)
+        q_act, p_nom, _, _, force = self._nominal(q, new_dir)
         sd = self.actuator_std(q_prev, q, rev, force)
+        _, p_prev, _, _, _ = self._nominal(q_prev[:1], self.direction[None, :])
+        slip = _slip_sd(self.rig.terms, np.broadcast_to(p_prev, p_nom.shape), p_nom)
         r = np.random.default_rng(seed)
         Z = r.standard_normal((n_draws, q.shape[1]))
         G = r.standard_normal(n_draws)
+        W = r.standard_normal((n_draws, 2)) if self._slips else np.zeros((n_draws, 2))
         m, n = q.shape
         means, vars_ = np.empty(m), np.empty(m)
         chunk = max(1, 200_000 // n_draws)
@@ -476,7 +532,9 @@ class FamilyStage(StageBackend):
             qa, sdk = q_act[k0:k0 + chunk], sd[k0:k0 + chunk]
             draws = qa[:, None, :] + sdk[:, None, :] * Z[None, :, :]
             p, _ = self.truth.pose(draws.reshape(-1, n))
-            t = self._read_mean(p).reshape(len(qa), n_draws) + self.gauge_std_um * G[None, :]
+            p[:, 1:3] += (slip[k0:k0 + chunk][:, None, :] * W[None, :, :]).reshape(-1, 2)
+            g_std = np.sqrt(self.gauge_std_um ** 2 + _tilt_var(self.rig.terms, p)).reshape(len(qa), n_draws)
+            t = self._read_mean(p).reshape(len(qa), n_draws) + g_std * G[None, :]
             means[k0:k0 + chunk] = np.mean(t, axis=1)
             vars_[k0:k0 + chunk] = np.var(t, axis=1, ddof=1)
         return means, vars_

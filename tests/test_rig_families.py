@@ -48,7 +48,7 @@ def _two_moves(rig):
 
 @pytest.mark.parametrize("family,seed", [("clean", 1), ("stick_slip", 2), ("stroke_patch", 3), ("light_ball", 2),
                                          ("settling", 4), ("reversal", 5), ("stiction", 6), ("extension", 7),
-                                         ("mix", 8)])
+                                         ("mix", 8), ("gauge_tilt", 9), ("hinge_slip", 10)])
 def test_exact_moments_match_monte_carlo_of_the_simulator(family, seed):
     rig = rf.make_family_rig(family, seed)
     u1, u2 = _two_moves(rig)
@@ -92,6 +92,30 @@ def test_family_noise_structures_do_what_they_say():
     f = np.array([[100.0, 50.0, 25.0, 0.0]])
     sd = rf._term_std(light, q_prev, q_prev, no_rev, f, 100.0)[0]
     assert sd[:3] == pytest.approx([0.02, 0.04, 0.08]) and sd[3] == 0.5
+
+
+def test_reading_level_structures_do_what_they_say():
+    """The tilted gauge's variance follows the pose's tilt only; the hinge's slip follows the tilt
+    change of the move only (a pure lift adds nothing), each by its docstring's formula."""
+    tilt = {"kind": "gauge_tilt", "act": [], "a": 0.2, "k": 1.5, "theta_max": 2.0}
+    p = np.array([[5.0, 0.0, 0.0], [5.0, 1.2, 1.6], [9.0, 1.2, 1.6]])  # tilt 0, 2, 2 mrad
+    assert rf._tilt_var([tilt], p) == pytest.approx([0.0, 0.04, 0.04])
+    hinge = {"kind": "hinge_slip", "act": [], "c": [0.05, 0.02]}
+    p_prev = np.array([[1.0, 0.5, -0.5]])
+    moves = np.array([[7.0, 0.5, -0.5], [1.0, 1.5, -0.5], [1.0, 0.5, 1.5]])
+    assert rf._slip_sd([hinge], np.repeat(p_prev, 3, axis=0), moves) == pytest.approx(
+        np.array([[0.0, 0.0], [0.05, 0.0], [0.0, 0.04]]))
+    # on a rig: a pure lift (equal steps on every actuator) is quiet, the same travel tilted is not
+    rig = rf.make_family_rig("hinge_slip", 3)
+    st = rig.stage(1)
+    s0 = st.state
+    from microctl.models.afm import AnalyticForwardModel
+
+    afm = AnalyticForwardModel(rig.config.stage)
+    lift, tilted = np.linalg.lstsq(afm.K, np.full(4, 8.0), rcond=None)[0], np.linalg.lstsq(
+        afm.K, np.array([16.0, 8.0, 0.0, 8.0]), rcond=None)[0]
+    v_lift, v_tilt = st.true_var(s0, lift), st.true_var(s0, tilted)
+    assert v_tilt > 4.0 * v_lift
 
 
 def test_rigs_are_seeded_and_keep_every_ball_loaded():
