@@ -24,6 +24,16 @@ dq_i = K_i u - q_i,prev):
                                                from the contact model; F_s = mean preload per
                                                ball / 4)
 
+and per coordinate c of the platform's pose (u = [z, rx, ry] for Table I; the previous pose
+u_prev = K^+ q_prev, K^+ the pseudo-inverse of eq. 12's K):
+
+``d<c>:sq``        (u_c - u_prev,c)^2          slip of the platform itself growing with how far
+                                               it moves in c whichever actuators move it (a
+                                               flexure hinge or guide with a dry-friction contact
+                                               slips by a fraction of its rotation)
+``<c>:sq``         u_c^2                       scatter growing with the pose's distance from
+                                               level in c (a gauge over a tilted target)
+
 Selection (:func:`select_features`) is forward and evidence-based with a multiple-testing
 discipline: on the residual of the mean correction, r ~ N(0, c_0 + sum_S c_j phi_j(x)) with
 c >= 0 is fitted by maximum likelihood; the candidate that raises the maximised log-likelihood
@@ -135,6 +145,15 @@ def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
         load = np.zeros(d)
         load[n_s:] = -B[i] / f_s
         add(load, -float(f0[i]) / f_s, "exp", (0.0, 0.0), f"f{i + 1}:light")
+    K_pinv = np.linalg.pinv(afm.K)  # u_prev = K^+ q_prev (exact on the reachable set)
+    for j, c in enumerate(afm.dof):
+        step = np.zeros(d)
+        step[1:n_s] = -K_pinv[j]
+        step[n_s + j] = 1.0
+        end = np.zeros(d)
+        end[n_s + j] = 1.0
+        add(step, 0.0, "sq", (0.0, 0.0), f"d{c}:sq")
+        add(end, 0.0, "sq", (0.0, 0.0), f"{c}:sq")
     return ShapedFeatures(np.array(rows), np.array(offs), tuple(shapes), np.array(params), np.ones(len(rows)),
                           tuple(names))
 
@@ -272,14 +291,6 @@ def _fit_tilt(r2: np.ndarray, Phi: np.ndarray, Z: np.ndarray) -> tuple[float, np
     return best
 
 
-def _score(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
-    """Score statistic of each candidate column of Phi (n, P) for entering v with c_j = 0 (one-sided:
-    0 where the score is negative), from the Fisher information of the Gaussian variance model."""
-    u = 0.5 * Phi.T @ ((r2 - v) / (v * v))
-    info = 0.5 * (Phi * Phi).T @ (1.0 / (v * v))
-    return np.where(u > 0, u * u / np.maximum(info, 1e-300), 0.0)
-
-
 def _profile_terms(v: np.ndarray, Phi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """For each ratio of :data:`PROFILE_RATIOS`: ``1 / V`` (n, P) and ``sum_i log(V_i / v_i)`` (P,)
     with ``V = v + rho phi_j``, the parts of :func:`_profile_gains` that do not depend on the
@@ -327,7 +338,8 @@ def _profile_gains(R2: np.ndarray, v: np.ndarray, Phi: np.ndarray,
     return best
 
 
-def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray, *, with_gains: bool = False
+                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Family-wise p-value of each candidate (columns of Phi): the probability, under the current
     fit, that the largest profiled gain (:func:`_profile_gains`) over all candidates reaches
     the candidate's observed one (Westfall-Young max-statistic; :data:`NULL_DRAWS` residual
@@ -336,7 +348,8 @@ def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndar
     Returns
     -------
     ndarray, shape (P,)
-        ``(1 + #{max* >= T_j}) / (1 + NULL_DRAWS)``.
+        ``(1 + #{max* >= T_j}) / (1 + NULL_DRAWS)``; with ``with_gains`` also the observed
+        profiled gains T_j, shape (P,).
     """
     terms = _profile_terms(v, Phi)
     obs = _profile_gains(r2[None, :], v, Phi, terms)[0]
@@ -350,15 +363,19 @@ def _max_stat_pvalues(r2: np.ndarray, v: np.ndarray, Phi: np.ndarray) -> np.ndar
             maxima.append(_profile_gains(z * z * v, v, Phi, terms).max(axis=1))
     mx = np.sort(np.concatenate(maxima))
     exceed = NULL_DRAWS - np.searchsorted(mx, obs * (1 - 1e-12), side="left")
-    return (1.0 + exceed) / (1.0 + NULL_DRAWS)
+    p = (1.0 + exceed) / (1.0 + NULL_DRAWS)
+    return (p, obs) if with_gains else p
 
 
 def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt_inputs: np.ndarray | None = None,
                     alpha: float = 0.05, max_features: int = 6, refits: int = 4) -> Selection:
     """Forward selection of variance features (module docstring).
 
-    At each step the candidates are ranked by their score statistic at the current fit (cheap,
-    all at once); the ``refits`` best are fitted by maximum likelihood. With ``tilt_inputs`` one
+    At each step the candidates are ranked by their profiled log-likelihood gain at the current
+    fit (:func:`_profile_gains`, all at once; the same gains the p-values refer to the null); the
+    ``refits`` best are fitted by maximum likelihood. (A local score statistic at c_j = 0 ranks
+    the saturating shapes of a step far below their gain: with the pose sources in the
+    dictionary it left a planted dq1:sat out of the refitted four.) With ``tilt_inputs`` one
     more candidate is a source growing exponentially along a direction of those inputs that the
     fit chooses (:func:`_fit_tilt`; k + 1 parameters). The candidate with the smallest adjusted
     p-value enters if that is below ``alpha`` (ties: the larger log-likelihood gain): a fixed
@@ -404,12 +421,14 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         v = c[0] + Phi[:, chosen] @ c[1: 1 + len(chosen)]
         if tilt is not None:
             v = v + c[-1] * np.exp(np.clip(tilt_inputs @ tilt, -50, 50))
-        order = rest[np.argsort(-_score(r2, v, Phi[:, rest]))][:refits]
         # max-statistic p over the dictionary's candidates in play, at level 0.8 alpha while the
         # tilt is in play (weighted Bonferroni over the two families: the tilt's own p is
         # Bonferroni over all m candidates, so it spends at most alpha / m <= 0.2 alpha)
-        p_rest = dict(zip(rest.tolist(), _max_stat_pvalues(r2, v, Phi[:, rest])
-                          * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
+        p_all, profiled = _max_stat_pvalues(r2, v, Phi[:, rest], with_gains=True)
+        p_rest = dict(zip(rest.tolist(), p_all * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
+        # the candidates refitted exactly: those whose profiled gain (the likelihood with the
+        # candidate at its best share, the current sources' proportions held) is largest
+        order = rest[np.argsort(-profiled, kind="stable")][:refits]
         options = []  # (adjusted p, gain, needed gain, what, c, w)
         for j in order:
             lj, cj = fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)

@@ -62,6 +62,21 @@ def test_candidates_cover_each_actuator_and_kind(afm):
         assert {f"d{nm}:{k}" for k in ("sq", "abs", "sat", "up", "down")} <= set(c.names)
         assert f"{nm}:ext" in c.names and sum(n.startswith(f"{nm}:bump@") for n in c.names) == 5
     assert {f"f{i}:light" for i in range(1, afm.n_q + 1)} <= set(c.names)
+    assert {f"d{d}:sq" for d in afm.dof} | {f"{d}:sq" for d in afm.dof} <= set(c.names)
+
+
+def test_pose_candidates_are_the_platform_step_and_pose(afm):
+    """``d<c>:sq`` is the square of the pose's change in coordinate c (the previous pose solved here
+    from q_prev by least squares), ``<c>:sq`` the square of the pose coordinate."""
+    rng = np.random.default_rng(3)
+    X = _inputs(afm, 40, rng)
+    u_prev = np.linalg.lstsq(afm.K, X[:, 1:afm.n_s].T, rcond=None)[0].T
+    c = candidate_features(afm)
+    V = c.values(X)
+    for j, d in enumerate(afm.dof):
+        np.testing.assert_allclose(V[:, c.names.index(f"d{d}:sq")], (X[:, afm.n_s + j] - u_prev[:, j]) ** 2,
+                                   rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(V[:, c.names.index(f"{d}:sq")], X[:, afm.n_s + j] ** 2, rtol=1e-12)
 
 
 def _inputs(afm, n, rng):
@@ -73,7 +88,7 @@ def _inputs(afm, n, rng):
     return np.hstack([np.zeros((n, 1)), Up @ afm.K.T, U])
 
 
-@pytest.mark.parametrize("planted", ["dq2:sq", "q3:bump@16", "dq1:sat", "dq4:step"])
+@pytest.mark.parametrize("planted", ["dq2:sq", "q3:bump@16", "dq1:sat", "dq4:step", "drx:sq", "ry:sq"])
 def test_a_planted_source_is_selected_first(afm, planted):
     """Residuals whose variance is a floor plus one candidate source (written here from the stage's
     own numbers, not through the dictionary) select that source first (300 moves, seed fixed)."""
@@ -91,6 +106,11 @@ def test_a_planted_source_is_selected_first(afm, planted):
     elif planted == "dq4:step":  # a breakaway at 3 µm, a logistic of width 0.2 µm (not the dictionary's)
         dq = q[:, 3] - qp[:, 3]
         v = 0.05**2 + 0.15**2 / (1.0 + np.exp(-(np.abs(dq) - 3.0) / 0.2))
+    elif planted == "drx:sq":  # a hinge slipping by 15 % of the platform's rotation about x (mrad)
+        u_prev = np.linalg.lstsq(afm.K, qp.T, rcond=None)[0].T
+        v = 0.05**2 + (0.15 * (X[:, n_s + 1] - u_prev[:, 1])) ** 2
+    elif planted == "ry:sq":  # a gauge whose noise grows with the tilt about y
+        v = 0.05**2 + (0.2 * X[:, n_s + 2]) ** 2
     r = np.sqrt(v) * rng.standard_normal(300)
     cands = candidate_features(afm).rescaled(X)
     sel = select_features(r, cands.values(X), cands.names)
