@@ -284,7 +284,7 @@ def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev,
             "oracle_std_um": o.predicted_std_um, "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
             "afm_err_um": float(stage.true_mean(s, a.u)) - target,
             "pred_std_um": res.predicted_std_um, "u": res.u.tolist(), "q_um": res.q.round(3).tolist(),
-            "q_prev_um": s[1:].round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "afm_q_um": a.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s,
+            "q_prev_um": s[1:].round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "afm_q_um": a.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s, "choice": res.choice,
             "verify_n": int(len(rand)), "verify_violations": viol,
             "verify_min_std_um": float(rand_std.min()) if len(rand) else float("nan")}
 
