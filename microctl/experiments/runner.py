@@ -37,6 +37,7 @@ from microctl.measurement.design import space_filling_moves, training_moves
 from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
+from microctl.models.outlier_screen import describe_screen
 from microctl.models.training import (
     noise_summary,
     residual_dataset,
@@ -254,11 +255,9 @@ def _fit(run: _Run, info: dict, round_: int) -> EAFM:
                            "se_selection": model.info.get("se_selection"),
                            "noise": noise_summary(model, run.afm)})
     info["rows"] = int(len(data.y))
-    screened = (model.info.get("noise_selection") or {}).get("screened") or {}
-    if screened.get("rows"):  # microctl.models.outlier_screen; the log keeps them
-        run.say(f"experiment: round {round_}: set aside training-log seq "
-                f"{', '.join(str(int(log.seq[i])) for i in screened['rows'])} as corrupt readings "
-                f"(|z| > {screened['bound']:.2f} under the model fitted without each); results.json lists them")
+    screened = describe_screen((model.info.get("noise_selection") or {}).get("screened"), log.seq)
+    if screened:  # the corrupt-reading screen (microctl.models.outlier_screen); the log keeps the rows
+        run.say(f"experiment: round {round_}: training_log.csv: {screened}; results.json lists them")
     return EAFM(run.afm, model)
 
 

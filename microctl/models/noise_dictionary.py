@@ -371,20 +371,18 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
                     alpha: float = 0.05, max_features: int = 6, refits: int = 4) -> Selection:
     """Forward selection of variance features (module docstring).
 
-    At each step the candidates are ranked by their profiled log-likelihood gain at the current
-    fit (:func:`_profile_gains`, all at once; the same gains the p-values refer to the null); the
-    ``refits`` best are fitted by maximum likelihood. (A local score statistic at c_j = 0 ranks
-    the saturating shapes of a step far below their gain: with the pose sources in the
-    dictionary it left a planted dq1:sat out of the refitted four.) With ``tilt_inputs`` one
-    more candidate is a source growing exponentially along a direction of those inputs that the
-    fit chooses (:func:`_fit_tilt`; k + 1 parameters). The candidate with the smallest adjusted
-    p-value enters if that is below ``alpha`` (ties: the larger log-likelihood gain): a fixed
-    feature's p-value is the max-statistic one over the candidates in play
-    (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's likelihood-ratio
-    statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over every candidate
-    in play. An entry also needs the BIC's gain (half log n per parameter) and a positive
-    likelihood gain. After the forward pass each selected source's shape is re-chosen among the
-    candidates of its quantity (:func:`_refine_shapes`).
+    At each step the candidates are ranked by their profiled log-likelihood gain at the current fit
+    (:func:`_profile_gains`, which the p-values refer to the null; a local score statistic ranks a
+    step's saturating shapes far below their gain); the ``refits`` best are fitted by maximum
+    likelihood. With ``tilt_inputs`` one more candidate is a source growing exponentially along a
+    direction of those inputs that the fit chooses (:func:`_fit_tilt`; k + 1 parameters). The
+    candidate with the smallest adjusted p-value enters if that is below ``alpha`` (ties: the larger
+    log-likelihood gain): a fixed feature's p-value is the max-statistic one over the candidates in
+    play (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's
+    likelihood-ratio statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over
+    every candidate in play. An entry also needs the BIC's gain (half log n per parameter) and a
+    positive likelihood gain. After the forward pass each selected source's shape is re-chosen
+    among the candidates of its quantity (:func:`_refine_shapes`).
 
     Parameters
     ----------
@@ -405,8 +403,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     -------
     Selection
     """
-    r2 = np.asarray(residual, dtype=float) ** 2
-    Phi = np.asarray(candidates, dtype=float)
+    r2, Phi = np.asarray(residual, dtype=float) ** 2, np.asarray(candidates, dtype=float)
     n, P = Phi.shape
     chosen: list[int] = []
     gains: list[float] = []
@@ -421,13 +418,10 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         v = c[0] + Phi[:, chosen] @ c[1: 1 + len(chosen)]
         if tilt is not None:
             v = v + c[-1] * np.exp(np.clip(tilt_inputs @ tilt, -50, 50))
-        # max-statistic p over the dictionary's candidates in play, at level 0.8 alpha while the
-        # tilt is in play (weighted Bonferroni over the two families: the tilt's own p is
-        # Bonferroni over all m candidates, so it spends at most alpha / m <= 0.2 alpha)
+        # max-statistic p at level 0.8 alpha while the tilt is in play (weighted Bonferroni: the tilt's own
+        # p is Bonferroni over all m, <= 0.2 alpha); the largest profiled gains are refitted exactly
         p_all, profiled = _max_stat_pvalues(r2, v, Phi[:, rest], with_gains=True)
         p_rest = dict(zip(rest.tolist(), p_all * (1.25 if tilt_inputs is not None and tilt is None else 1.0)))
-        # the candidates refitted exactly: those whose profiled gain (the likelihood with the
-        # candidate at its best share, the current sources' proportions held) is largest
         order = rest[np.argsort(-profiled, kind="stable")][:refits]
         options = []  # (adjusted p, gain, needed gain, what, c, w)
         for j in order:

@@ -54,7 +54,7 @@ import numpy as np
 
 from microctl.models.noise_dictionary import fit_variance_with, variance_design
 
-__all__ = ["SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
+__all__ = ["describe_screen", "SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
            "deletion_residuals", "screen_rows", "bonferroni_bound", "max_screened", "tail_bound"]
 
 #: Family-wise level of the screen over a log's rows (two-sided). Chosen before it was measured
@@ -245,3 +245,19 @@ def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarra
     order = np.argsort(suspects[out])
     return Screen(tuple(int(i) for i in suspects[out][order]), tuple(float(x) for x in z[out][order]), bound,
                   int(out.sum()), nu=nu)
+
+
+def describe_screen(record: dict | None, seq) -> str:
+    """One line on the rows the screen set aside (the record training keeps, ``info["noise_selection"]["screened"]``),
+    each by its line in the log file (the header is line 1) and its ``seq``; "" when it set aside none
+    and withheld none."""
+    if not record or (not record["rows"] and not record["withheld"]):
+        return ""
+    if not record["rows"]:
+        return (f"note: {record['withheld']} readings are beyond |z| = {record['bound']:.2f} under the noise sources "
+                "fitted without each; that many are not a few corrupt readings but heavier tails than the model's, so "
+                "none was set aside")
+    rows = ", ".join(f"line {i + 2} (seq {int(seq[i])}, z = {z:+.1f})" for i, z in zip(record["rows"], record["z"]))
+    return (f"set aside {len(record['rows'])} reading(s) that the model, fitted without each, puts beyond "
+            f"|z| = {record['bound']:.2f} (family-wise level {record['alpha']:g} for the tails of the other rows; "
+            f"a corrupt reading?): {rows}; the log is unchanged")

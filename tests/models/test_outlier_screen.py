@@ -192,7 +192,7 @@ def test_train_describes_what_the_screen_did_by_log_line_and_seq():
     """The line ``microctl train`` prints: nothing when no row was set aside or withheld; each row
     by its line in the file (header = line 1, so row i is line i + 2) and its seq; the withheld
     case says none was set aside."""
-    from microctl.cli.commands.train import describe_screen
+    from microctl.models.outlier_screen import describe_screen
 
     seq = np.array([10, 11, 12, 13])
     assert describe_screen(None, seq) == ""

@@ -11,6 +11,7 @@ from microctl.errors import ConfigError, DataError
 from microctl.measurement.log import read_log
 from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
+from microctl.models.outlier_screen import describe_screen
 from microctl.models.training import (
     GP_FORMS,
     AUTO_SPARSE_ROWS,
@@ -109,22 +110,6 @@ def _run(args: argparse.Namespace) -> int:
               + f" (SE part {'kept' if sel['kept_se'] else 'dropped'}: it raised the bound by "
               f"{sel['bound_with_se'] - sel['bound_affine']:.1f} nats, needed {sel['penalty']:.1f})")
     return 0
-
-
-def describe_screen(record: dict | None, seq) -> str:
-    """One line on the rows the corrupt-reading screen set aside (:mod:`microctl.models.outlier_screen`),
-    each by its line in the log file (the header is line 1) and its ``seq``; "" when it set aside none
-    and withheld none."""
-    if not record or (not record["rows"] and not record["withheld"]):
-        return ""
-    if not record["rows"]:
-        return (f"note: {record['withheld']} readings are beyond |z| = {record['bound']:.2f} under the noise sources "
-                "fitted without each; that many are not a few corrupt readings but heavier tails than the model's, so "
-                "none was set aside")
-    rows = ", ".join(f"line {i + 2} (seq {int(seq[i])}, z = {z:+.1f})" for i, z in zip(record["rows"], record["z"]))
-    return (f"set aside {len(record['rows'])} reading(s) that the model, fitted without each, puts beyond "
-            f"|z| = {record['bound']:.2f} (family-wise level {record['alpha']:g} for the tails of the other rows; "
-            f"a corrupt reading?): {rows}; the log is unchanged")
 
 
 def describe_noise(summary: dict) -> str:
