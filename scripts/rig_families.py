@@ -501,9 +501,16 @@ class FamilyStage(StageBackend):
     def _reading_var(self, q_prev: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Variance the reading-level terms add to moves from q_prev (m, n_q) to the noise-free
         poses p (m, 3), shape (m,): the tilted gauge's, and the hinge's slip through the levers."""
-        _, p_prev, _, _, _ = self._nominal(q_prev[:1], self.direction[None, :])
-        slip = _slip_sd(self.rig.terms, np.broadcast_to(p_prev, p.shape), p)
+        slip = self._slip_std(q_prev, p)
         return _tilt_var(self.rig.terms, p) + np.sum((slip * self.tilt_lever[None, :]) ** 2, axis=1)
+
+    def _slip_std(self, q_prev: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The hinge's slip std (mrad) of rx, ry over moves from q_prev (m, n_q; its first row, the
+        state's) to the noise-free poses p (m, 3), shape (m, 2); zeros without a hinge term."""
+        if not self._slips:
+            return np.zeros((p.shape[0], 2))
+        _, p_prev, _, _, _ = self._nominal(q_prev[:1], self.direction[None, :])
+        return _slip_sd(self.rig.terms, np.broadcast_to(p_prev, p.shape), p)
 
     def mc_moments(self, s: np.ndarray, u: np.ndarray, n_draws: int = 1000, seed: int = 0
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -519,8 +526,7 @@ class FamilyStage(StageBackend):
         q_prev, q, new_dir, rev = self._setup(s, u)
         q_act, p_nom, _, _, force = self._nominal(q, new_dir)
         sd = self.actuator_std(q_prev, q, rev, force)
-        _, p_prev, _, _, _ = self._nominal(q_prev[:1], self.direction[None, :])
-        slip = _slip_sd(self.rig.terms, np.broadcast_to(p_prev, p_nom.shape), p_nom)
+        slip = self._slip_std(q_prev, p_nom)
         r = np.random.default_rng(seed)
         Z = r.standard_normal((n_draws, q.shape[1]))
         G = r.standard_normal(n_draws)
