@@ -1,0 +1,48 @@
+"""scripts/bench_rigs.py's summary counts, on rig-targets whose ratios are worked out by hand.
+
+The calibration compares the prediction the result states, N(target, pred_std^2) with
+pred_std = sqrt(f_var + noise), with the readings' true RMS deviation from it,
+sqrt(std^2 + err^2); the scatter calibration compares the true std with the predicted noise std.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("_script_bench_rigs_summary", ROOT / "scripts" / "bench_rigs.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _target(std, err, pred, noise, oracle=0.1):
+    return {"std_um": std, "err_um": err, "pred_std_um": pred, "pred_noise_std_um": noise,
+            "oracle_std_um": oracle, "afm_std_um": oracle, "solve_ms": 1.0}
+
+
+def test_calibration_counts_the_mean_error_with_the_scatter():
+    bench = _bench()
+    targets = [
+        # sqrt(0.06^2 + 0.08^2) = 0.10: RMS / pred = 1.0 (in); std / noise = 0.06 / 0.1 = 0.6 (out)
+        _target(0.06, 0.08, 0.10, 0.10),
+        # RMS 0.05 / 0.10 = 0.5 (out: the predicted std, with f's variance, is too wide);
+        # std / noise = 0.05 / 0.05 = 1.0 (in)
+        _target(0.05, 0.0, 0.10, 0.05),
+        # RMS sqrt(0.09^2 + 0.12^2) = 0.15 / 0.12 = 1.25 (in); std / noise 0.09 / 0.1 = 0.9 (in)
+        _target(0.09, -0.12, 0.12, 0.10),
+        # RMS 0.2 / 0.1 = 2.0 (out); std / noise 2.0 (out)
+        _target(0.2, 0.0, 0.1, 0.1),
+    ]
+    results = [{"runs": [{"n": 200, "method": "default", "fit_s": 1.0, "targets": targets}]}]
+    (row,) = bench.summarise(results, [200], ["default"])
+    assert (row["cal_pass"], row["cal_scatter_pass"], row["cal_n"]) == (2, 2, 4)
+    assert abs(row["cal_min"] - 0.5) < 1e-12 and abs(row["cal_max"] - 2.0) < 1e-12
+    # the rig fails on both counts: the third target's |err| 0.12 > 0.1 and the fourth's std is 2x the oracle's
+    assert (row["rigs_pass"], row["rigs_err_pass"], row["rigs_std_pass"]) == (0, 0, 0)
