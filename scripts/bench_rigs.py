@@ -95,7 +95,7 @@ import rig_families  # noqa: E402
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
 STD_BAR, ERR_BAR_UM, CAL_BAR = 1.25, 0.1, (0.67, 1.5)
 #: What the calibration columns compare (the page's legend).
-CAL_TEXT = (f"calibration = the readings' true RMS deviation from the prediction (scatter and mean error) / the "
+CAL_TEXT = ("calibration = the readings' true RMS deviation from the prediction (scatter and mean error) / the "
             f"predicted std sqrt(f_var + noise), in {list(CAL_BAR)}; scatter calibration = true std / predicted "
             "noise std, in the same interval")
 CONTACTS_MM = ([15, 0, 5], [0, -15, 5], [-15, 0, 5], [0, 15, 5])
