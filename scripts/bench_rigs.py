@@ -403,20 +403,27 @@ RIG_COLUMNS = (
 )
 
 
-def rig_table_markdown(table: list[dict]) -> list[str]:
-    """The rig summary as a Markdown table (one row per size and method)."""
-    L = ["<!-- table: rigs -->", "| " + " | ".join(h for _, h, _ in RIG_COLUMNS) + " |",
-         "|" + "---|" * len(RIG_COLUMNS)]
+def _markdown_table(tag: str, columns, table: list[dict]) -> list[str]:
+    """A summary as a Markdown table, one row per entry of ``table``; a column whose format is None
+    is a count "k/N", out of the rig-targets (calibration), the random poses tried (oracle check)
+    or the rigs."""
+    L = [f"<!-- table: {tag} -->", "| " + " | ".join(h for _, h, _ in columns) + " |", "|" + "---|" * len(columns)]
     for t in table:
         cells = []
-        for key, _, fmt in RIG_COLUMNS:
-            if fmt is None:  # a pass count: "k/N"
-                total = t["cal_n"] if key.startswith("cal_") else t["rigs"]
+        for key, _, fmt in columns:
+            if fmt is None:
+                total = t["cal_n"] if key.startswith("cal_") else t["verify_n"] if key == "verify_violations" \
+                    else t["rigs"]
                 cells.append(f"{t[key]}/{total}")
             else:
                 cells.append(fmt.format(t[key]))
         L.append("| " + " | ".join(cells) + " |")
     return L
+
+
+def rig_table_markdown(table: list[dict]) -> list[str]:
+    """The rig summary as a Markdown table (one row per size and method)."""
+    return _markdown_table("rigs", RIG_COLUMNS, table)
 
 
 def failing_targets(results: list[dict]) -> list[dict]:
@@ -459,19 +466,7 @@ FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
 
 def family_table_markdown(table: list[dict]) -> list[str]:
     """The per-family summary as a Markdown table."""
-    L = ["<!-- table: families -->", "| " + " | ".join(h for _, h, _ in FAMILY_COLUMNS) + " |",
-         "|" + "---|" * len(FAMILY_COLUMNS)]
-    for t in table:
-        cells = []
-        for key, _, fmt in FAMILY_COLUMNS:
-            if fmt is None:
-                total = {"cal_pass": t["cal_n"], "cal_scatter_pass": t["cal_n"],
-                         "verify_violations": t["verify_n"]}.get(key, t["rigs"])
-                cells.append(f"{t[key]}/{total}")
-            else:
-                cells.append(fmt.format(t[key]))
-        L.append("| " + " | ".join(cells) + " |")
-    return L
+    return _markdown_table("families", FAMILY_COLUMNS, table)
 
 
 def _fmt_fail(f: dict) -> str:
