@@ -59,8 +59,8 @@ class VHGPRPrediction:
 
 def _stored(role: str, *, shape: tuple[str, ...] | None = None, log: bool = False, **kw: Any) -> Any:
     """A dataclass field with its storage role in the model file (see :meth:`FittedVHGPR.stored`),
-    its shape in the dimensions ``n`` (training points), ``d`` (inputs), ``p`` and ``p+1``
-    (noise features) and whether it is a log-parameter (both checked at load)."""
+    its shape in the dimensions ``n`` (training points), ``d`` (inputs), ``k`` (the inputs the
+    kernels read: the first k of d), ``p`` and ``p+1`` (noise features) and whether it is a log-parameter (both checked at load)."""
     return field(metadata={"store": role, "shape": shape, "log": log}, **kw)
 
 
@@ -77,7 +77,9 @@ class FittedVHGPR:
     X : ndarray, shape (n, d)
         Standardised training inputs.
     f_log_lengthscales, f_log_signal_var, f_log_bias_var
-        Kernel of f (see :func:`ard_se`); the bias is None when not used.
+        Kernel of f (see :func:`ard_se`); the bias is None when not used. The lengthscales have
+        shape (k,), k <= d: the kernels read the first k inputs, the columns beyond only g's
+        prior mean (a move's context, :attr:`n_context`).
     g_log_lengthscales, g_log_signal_var, g_log_bias_var
         Kernel of g.
     g_mu0 : float
@@ -122,6 +124,9 @@ class FittedVHGPR:
         The noise model (:mod:`microctl.gp.noise_models`) that built g's prior mean; None (a
         model built in memory, or a file of format 1 or 2 written before the name was stored):
         ``"physical"`` when there are features, else ``"hgp"``.
+    g_feature_gate, g_feature_gate_offset : ndarray, shapes (p, d) and (p,), or None
+        The gates of gated features (``rev``, :mod:`microctl.gp.shaped_features`) in
+        standardised inputs, ``c = G . xs + h`` in the gate's own units; None: no gated feature.
     posterior_form : {"exact", "sparse"}
         ``"exact"``: the fields above as a VHGPR fit writes them. ``"sparse"``
         (:mod:`microctl.gp.sparse`): ``X`` holds the M inducing inputs, ``f_chol``/``g_chol``
@@ -137,10 +142,10 @@ class FittedVHGPR:
     y_mean: float = _stored("float")
     y_scale: float = _stored("float")
     X: np.ndarray = _stored("array")
-    f_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    f_log_lengthscales: np.ndarray = _stored("array", shape=("k",), log=True)
     f_log_signal_var: float = _stored("float", log=True)
     f_log_bias_var: float | None = _stored("optional_float", log=True)
-    g_log_lengthscales: np.ndarray = _stored("array", shape=("d",), log=True)
+    g_log_lengthscales: np.ndarray = _stored("array", shape=("k",), log=True)
     g_log_signal_var: float = _stored("float", log=True)
     g_log_bias_var: float | None = _stored("optional_float", log=True)
     g_mu0: float = _stored("float", log=True)
@@ -155,7 +160,7 @@ class FittedVHGPR:
     x_names: tuple[str, ...] = _stored("meta", default=())
     y_name: str = _stored("meta", default="")
     info: dict = _stored("meta", default_factory=dict)
-    f_log_linear_vars: np.ndarray | None = _stored("optional_array", shape=("d",), log=True, default=None)
+    f_log_linear_vars: np.ndarray | None = _stored("optional_array", shape=("k",), log=True, default=None)
     g_feature_matrix: np.ndarray | None = _stored("optional_array", shape=("p", "d"), default=None)
     g_feature_offset: np.ndarray | None = _stored("optional_array", shape=("p",), default=None)
     g_log_feature_coef: np.ndarray | None = _stored("optional_array", shape=("p",), log=True, default=None)
@@ -165,6 +170,8 @@ class FittedVHGPR:
     g_feature_shapes: tuple[str, ...] = _stored("meta", default=())
     g_feature_params: tuple = _stored("meta", default=())
     posterior_form: str = _stored("meta", default="exact")
+    g_feature_gate: np.ndarray | None = _stored("optional_array", shape=("p", "d"), default=None)
+    g_feature_gate_offset: np.ndarray | None = _stored("optional_array", shape=("p",), default=None)
 
     @classmethod
     def stored(cls, role: str) -> tuple[str, ...]:
@@ -186,6 +193,11 @@ class FittedVHGPR:
     def n_inputs(self) -> int:
         """Number of input dimensions d."""
         return int(self.X.shape[1])
+
+    @property
+    def n_context(self) -> int:
+        """Trailing input columns only g's prior mean reads (d - k; 0 for most models)."""
+        return int(self.X.shape[1]) - int(np.size(self.f_log_lengthscales))
 
     @property
     def f_kernel(self) -> Kernel:

@@ -18,6 +18,10 @@ extrapolates poorly towards the faces of the workspace, where quiet poses lie.
 flat block; :class:`Kernel` is one kernel with its hyperparameters, evaluated in NumPy
 (:meth:`Kernel.matrix`, :meth:`Kernel.diag`, :meth:`Kernel.grad_traces`) and as CasADi
 expressions against fixed training inputs (:meth:`Kernel.casadi_column`).
+
+A kernel of d lengthscales reads the first d columns of its inputs: inputs may carry further
+columns that only g's prior mean reads (a move's context, such as each actuator's last
+direction of motion: :mod:`microctl.models.noise_dictionary`), which the kernels ignore.
 """
 
 from __future__ import annotations
@@ -162,10 +166,20 @@ class Kernel:
         """v, shape (d,), or None."""
         return None if self.log_linear_vars is None else np.exp(np.asarray(self.log_linear_vars, dtype=float))
 
+    @property
+    def d(self) -> int:
+        """Number of input columns the kernel reads (the first d of its inputs)."""
+        return int(np.size(self.log_lengthscales))
+
+    def _cols(self, X: np.ndarray) -> np.ndarray:
+        """The columns of X the kernel reads (see the module docstring), shape (m, d)."""
+        X = np.asarray(X, dtype=float)
+        return X[:, :self.d] if X.ndim == 2 and X.shape[1] > self.d else X
+
     # ---- NumPy ---------------------------------------------------------------------
     def se(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
         """The SE part alone, shape (m, n)."""
-        return se_matrix(Xa, Xb, self.log_lengthscales, self.log_signal_var)
+        return se_matrix(self._cols(Xa), self._cols(Xb), self.log_lengthscales, self.log_signal_var)
 
     def matrix(self, Xa: np.ndarray, Xb: np.ndarray, se: np.ndarray | None = None) -> np.ndarray:
         """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed."""
@@ -174,12 +188,12 @@ class Kernel:
             K += self.bias_var
         v = self.linear_vars
         if v is not None:
-            K += (np.asarray(Xa, dtype=float) * v) @ np.asarray(Xb, dtype=float).T
+            K += (self._cols(Xa) * v) @ self._cols(Xb).T
         return K
 
     def diag(self, X: np.ndarray) -> np.ndarray:
         """k(x, x) at the rows of X, shape (m,)."""
-        X = np.asarray(X, dtype=float)
+        X = self._cols(X)
         out = np.full(X.shape[0], self.signal_var + self.bias_var)
         v = self.linear_vars
         if v is not None:
@@ -201,6 +215,7 @@ class Kernel:
         X : ndarray, shape (n, d)
         """
         H = G * se
+        X = self._cols(X)
         Z = X * np.exp(-np.asarray(self.log_lengthscales, dtype=float))
         h = H.sum(axis=1)
         HZ = H @ Z
@@ -225,7 +240,10 @@ class Kernel:
         -------
         value : ndarray, shape (m,)
         grad : ndarray, shape (m, d)
+            Zero in the columns beyond the kernel's d.
         """
+        width = np.asarray(Xs).shape[1]
+        Xs, X = self._cols(Xs), self._cols(X)
         inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
         K = self.se(Xs, X)
         A = K * weights[None, :]
@@ -238,11 +256,15 @@ class Kernel:
             lw = (X * v).T @ weights  # (d,)
             value = value + Xs @ lw
             grad = grad + lw[None, :]
+        if width > grad.shape[1]:
+            grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad
 
     # ---- CasADi --------------------------------------------------------------------
     def casadi_column(self, xs: ca.MX, X: np.ndarray) -> ca.MX:
         """k(x*, X) as an (n, 1) MX column for a symbolic input ``xs`` of shape (d, 1)."""
+        X = self._cols(X)
+        xs = xs[:self.d] if xs.shape[0] > self.d else xs
         inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
         Z = X * inv_ls
         z = xs * ca.DM(inv_ls)
@@ -260,6 +282,7 @@ class Kernel:
         out = self.signal_var + self.bias_var
         v = self.linear_vars
         if v is not None:
+            xs = xs[:self.d] if xs.shape[0] > self.d else xs
             return out + ca.dot(ca.DM(v), xs * xs)
         return ca.DM(out)
 

@@ -32,9 +32,12 @@ __all__ = ["FORMAT_VERSION", "READABLE_VERSIONS", "write_model", "read_model"]
 #: noise model's name (``meta_json["noise_model"]``) is optional: files without it read
 #: with the name derived from their arrays. Version 3 adds the optional
 #: ``meta_json["posterior_form"]`` (``"sparse"``: :mod:`microctl.gp.sparse`; absent: exact), so
-#: that a microctl reading version 2 refuses a sparse model instead of misreading it.
-FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+#: that a microctl reading version 2 refuses a sparse model instead of misreading it. Version 4
+#: allows inputs the kernels do not read (fewer lengthscales than inputs: a move's context that
+#: only g's prior mean reads) and the optional gates of gated noise features
+#: (``g_feature_gate``, ``g_feature_gate_offset``), so that an older microctl refuses such a model.
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 #: The posterior forms (:class:`~microctl.gp.fitted.FittedVHGPR` ``posterior_form``).
 POSTERIOR_FORMS = ("exact", "sparse")
 
@@ -209,14 +212,17 @@ def _fields_from(cls: type, data: dict) -> dict[str, Any]:
 
 
 def _check_shapes(path: Path, kw: dict, dims: dict[str, tuple[str, ...]]) -> None:
-    """Every array of the shape (``dims``: in n, d, p, p+1) n training points in d inputs and p
-    noise features need."""
+    """Every array of the shape (``dims``: in n, d, k, p, p+1) n training points in d inputs, k of
+    them read by the kernels, and p noise features need."""
     X = kw["X"]
     if X.ndim != 2 or X.shape[0] < 1:
         raise DataError(f"{path}: malformed model file: 'X' has shape {X.shape}")
     n, d = X.shape
     p = kw["g_feature_matrix"].shape[0] if kw.get("g_feature_matrix") is not None and kw["g_feature_matrix"].ndim == 2 else 0
-    size = {"n": n, "d": d, "p": p, "p+1": p + 1}
+    k = int(np.size(kw["f_log_lengthscales"])) if kw.get("f_log_lengthscales") is not None else d
+    if not 1 <= k <= d:
+        raise DataError(f"{path}: malformed model file: {k} lengthscales for {d} inputs (expected 1 to {d})")
+    size = {"n": n, "d": d, "k": k, "p": p, "p+1": p + 1}
     shapes = {k: tuple(size[s] for s in spec) for k, spec in dims.items() if kw.get(k) is not None}
     features = [k for k in FEATURE_ARRAYS if kw.get(k) is not None]
     if features and len(features) != 3:

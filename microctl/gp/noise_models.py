@@ -63,7 +63,8 @@ class NoiseModel:
         models whose transform depends on the features return a bound copy; default itself)."""
         return self
 
-    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray) -> np.ndarray:
+    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray,
+               gate: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """The features ``phi`` at the standardised training inputs, shape (n, p).
 
         Parameters
@@ -71,9 +72,12 @@ class NoiseModel:
         Xs : ndarray, shape (n, d)
         As, bs : ndarray, shapes (p, d) and (p,)
             The standardised linear maps (:meth:`~microctl.gp.noise_prior.NoiseFeatures.standardised`).
+        gate : (ndarray, ndarray), optional
+            The standardised gates (G_s (p, d), h_s (p,),
+            :meth:`~microctl.gp.noise_prior.NoiseFeatures.standardised_gate`) of gated features.
         """
         lin = Xs @ As.T + bs
-        return self.transform(lin)
+        return self.transform(lin) if gate is None else self.transform(lin, Xs @ gate[0].T + gate[1])
 
     def prior_mean(self, model: Any) -> LogVarianceMean:
         """g's prior mean from the fields of a fitted model (a :class:`~microctl.gp.fitted.FittedVHGPR`)."""
@@ -120,7 +124,8 @@ class ConstantNoise(NoiseModel):
     uses_features = False
     stored_arrays = ()
 
-    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray) -> np.ndarray:
+    def design(self, Xs: np.ndarray, As: np.ndarray, bs: np.ndarray,
+               gate: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         raise ValueError("the constant noise model has no features")
 
     def prior_mean(self, model: Any) -> LogVarianceMean:
@@ -145,10 +150,10 @@ class DictionaryNoise(NoiseModel):
             raise ValueError("the dictionary noise model needs shaped features (NoiseFeatures.shapes)")
         return DictionaryNoise(ShapeTransform(features.shapes, features.params, y_scale))
 
-    def transform(self, z: Any) -> Any:  # type: ignore[override]
+    def transform(self, z: Any, gate: Any = None) -> Any:  # type: ignore[override]
         if self._transform is None:
             raise ValueError("the dictionary noise model is not bound to its features (for_features)")
-        return self._transform(z)
+        return self._transform(z, gate)
 
     def prior_mean(self, model: Any) -> LogVarianceMean:
         p = 0 if model.g_feature_matrix is None else int(np.asarray(model.g_feature_matrix).shape[0])
@@ -160,4 +165,5 @@ class DictionaryNoise(NoiseModel):
                              f"{len(model.g_feature_params)} parameter pairs for {p} features")
         tr = ShapeTransform(model.g_feature_shapes, model.g_feature_params, model.y_scale)
         return LogVarianceMean(model.g_feature_matrix, model.g_feature_offset, model.g_mu0, model.g_log_feature_coef,
-                               model.g_mean_coef_cov, transform=tr)
+                               model.g_mean_coef_cov, transform=tr, gate_matrix=model.g_feature_gate,
+                               gate_offset=model.g_feature_gate_offset)

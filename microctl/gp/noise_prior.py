@@ -72,6 +72,12 @@ class NoiseFeatures:
         :mod:`microctl.gp.shaped_features`) applies to ``a_j . x + b_j``; empty: squares (eq. 1).
     params : tuple of (float, float)
         The shapes' parameters, in the linear quantity's own units (empty with ``shapes``).
+    gate : ndarray, shape (p, d), or None
+        Per feature, the gate ``c_j = g_j . x`` a gated shape reads beside ``a_j . x + b_j``
+        (:mod:`microctl.gp.shaped_features`, ``rev``); None: no gated feature.
+    context : int
+        How many trailing columns of x only the prior mean reads (a move's context, such as
+        each actuator's last direction of motion): the kernels read the others.
     """
 
     matrix: np.ndarray
@@ -79,6 +85,8 @@ class NoiseFeatures:
     names: tuple[str, ...]
     shapes: tuple[str, ...] = ()
     params: tuple[tuple[float, float], ...] = ()
+    gate: np.ndarray | None = None
+    context: int = 0
 
     def __post_init__(self) -> None:
         A = np.asarray(self.matrix, dtype=float)
@@ -91,6 +99,11 @@ class NoiseFeatures:
         if self.shapes and (len(self.shapes) != A.shape[0] or len(self.params) != A.shape[0]):
             raise ConfigError(f"noise features: {len(self.shapes)} shapes and {len(self.params)} parameter pairs "
                               f"for {A.shape[0]} features")
+        if self.gate is not None and np.shape(self.gate) != A.shape:
+            raise ConfigError(f"noise features: gate {np.shape(self.gate)} does not match matrix {A.shape}")
+        if isinstance(self.context, bool) or int(self.context) != self.context or not 0 <= self.context < A.shape[1]:
+            raise ConfigError(f"noise features: context must be an integer in [0, {A.shape[1] - 1}], got "
+                              f"{self.context!r}")
 
     @property
     def p(self) -> int:
@@ -107,6 +120,13 @@ class NoiseFeatures:
         As = A * np.asarray(x_scale)[None, :] / y_scale
         bs = (A @ np.asarray(x_mean) + np.asarray(self.offset)) / y_scale
         return As, bs
+
+    def standardised_gate(self, x_mean: np.ndarray, x_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(G_s, h_s) with ``G_s . xs + h_s = g . x`` (the gate in its own units), or None."""
+        if self.gate is None:
+            return None
+        G = np.asarray(self.gate, dtype=float)
+        return G * np.asarray(x_scale)[None, :], G @ np.asarray(x_mean)
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,7 +148,10 @@ class LogVarianceMean:
     transform : callable
         ``phi_j = transform(a_j . x + b_j)`` elementwise, for NumPy arrays and CasADi
         expressions alike (default :func:`square`, eq. 1; a noise model of
-        :mod:`microctl.gp.noise_models` may give another).
+        :mod:`microctl.gp.noise_models` may give another); with gates,
+        ``transform(lin, gate)``.
+    gate_matrix, gate_offset : ndarray, shapes (p, d) and (p,), or None
+        G_s, h_s: the gates ``c_j = G_s . xs + h_s`` of gated features (own units), or None.
     """
 
     feature_matrix: np.ndarray
@@ -136,7 +159,9 @@ class LogVarianceMean:
     log_const: float
     log_coef: np.ndarray
     coef_cov: np.ndarray | None = None
-    transform: Callable[[Any], Any] = field(default=square)
+    transform: Callable[..., Any] = field(default=square)
+    gate_matrix: np.ndarray | None = None
+    gate_offset: np.ndarray | None = None
 
     @classmethod
     def constant(cls, d: int, mu0: float) -> "LogVarianceMean":
@@ -157,7 +182,16 @@ class LogVarianceMean:
         """``[1, phi_1(x), ..., phi_p(x)]`` at the rows of Xs, shape (m, p + 1)."""
         Xs = np.asarray(Xs, dtype=float)
         lin = Xs @ self.feature_matrix.T + self.feature_offset
-        return np.hstack([np.ones((Xs.shape[0], 1)), self.transform(lin)])
+        return np.hstack([np.ones((Xs.shape[0], 1)), self.phi(lin, Xs)])
+
+    def phi(self, lin: Any, xs: Any) -> Any:
+        """The features at their linear quantities ``lin`` (of the standardised inputs xs, whose
+        gates they read when there are any): NumPy rows or a CasADi column."""
+        if self.gate_matrix is None:
+            return self.transform(lin)
+        if isinstance(lin, np.ndarray):
+            return self.transform(lin, xs @ self.gate_matrix.T + self.gate_offset)
+        return self.transform(lin, ca.mtimes(ca.DM(self.gate_matrix), xs) + ca.DM(self.gate_offset))
 
     def value(self, Xs: np.ndarray) -> np.ndarray:
         """m(x) of (1), shape (m,)."""
@@ -198,7 +232,7 @@ class LogVarianceMean:
                 var = ca.DM(0.0 if self.coef_cov is None else math.log1p(float(self.coef_cov[0, 0]) / c[0] ** 2))
             return ca.DM(float(self.log_const)), var
         lin = ca.mtimes(ca.DM(self.feature_matrix), xs) + ca.DM(self.feature_offset)
-        phi = ca.vertcat(ca.DM(1.0), self.transform(lin))
+        phi = ca.vertcat(ca.DM(1.0), self.phi(lin, xs))
         v = ca.dot(ca.DM(c), phi)
         m = ca.log(v)  # (1)
         if not with_variance:

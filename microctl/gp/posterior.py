@@ -181,16 +181,18 @@ class Posterior:
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance of g at every x = [xs_s[i]; xs_u[j]], shapes (m1, m2).
 
-        g's kernel (ARD SE plus a bias) is separable over the two blocks of inputs, so
+        ``xs_u`` carries the model's context columns after the pose, if it has any (they are
+        constant over a move's candidates). g's kernel (ARD SE plus a bias) is separable over
+        the two blocks of inputs, so
         ``k([s_i; u_j], X) . beta = sf2 (A_s o beta) A_u^T + bias sum(beta)``: one (m1 x n)(n x m2)
         product; the prior mean is evaluated on the pairwise linear features (a sum of an s
         part and a u part). The exact GP variance, when not negligible, row by row.
         """
         ns = xs_s.shape[1]
         kg, X, beta = self.g_kernel, self.X, np.asarray(self.g_beta, dtype=float)
-        ls = np.asarray(kg.log_lengthscales, dtype=float)
+        ls, dk = np.asarray(kg.log_lengthscales, dtype=float), kg.d  # a context beyond dk: prior mean only
         A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
-        A_u = se_matrix(xs_u, X[:, ns:], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
+        A_u = se_matrix(xs_u[:, :dk - ns], X[:, ns:dk], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
         mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
         prior, prior_var = self._prior_pairs(xs_s, xs_u, mean.shape)
         mean = mean + prior + self.log_y2
@@ -213,7 +215,14 @@ class Posterior:
         F = np.asarray(gm.feature_matrix, dtype=float)
         lin = ((xs_s @ F[:, :ns].T)[:, None, :] + (xs_u @ F[:, ns:].T)[None, :, :]
                + np.asarray(gm.feature_offset, dtype=float))             # (m1, m2, p)
-        Phi = np.concatenate([np.ones(lin.shape[:2] + (1,)), gm.transform(lin)], axis=2)
+        if gm.gate_matrix is None:
+            phi = gm.transform(lin)
+        else:
+            G = np.asarray(gm.gate_matrix, dtype=float)
+            gate = ((xs_s @ G[:, :ns].T)[:, None, :] + (xs_u @ G[:, ns:].T)[None, :, :]
+                    + np.asarray(gm.gate_offset, dtype=float))
+            phi = gm.transform(lin, gate)
+        Phi = np.concatenate([np.ones(lin.shape[:2] + (1,)), phi], axis=2)
         V = Phi @ gm.coef
         prior = np.log(V)                                                 # noise_prior eq. 1
         if gm.coef_cov is None:

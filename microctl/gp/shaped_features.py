@@ -21,6 +21,13 @@ module represents each candidate as that linear quantity ``z_j = a_j . x + b_j``
 ``exp``     exp(z)                                (grows as z rises: a ball unloading)
 ``step``    1 / (1 + exp(-(|z|_e - d) / w))       (a breakaway: repeatable below a step of d,
                                                    a fixed-size slip beyond; |z|_e = sqrt(z^2 + w^2))
+``rev``     z^2/(z^2 + s^2) (1 - tanh(z c / e))/2  (a reversal: scatter, saturating in the step,
+                                                   only where the step's sign is opposite to c,
+                                                   the actuator's last direction of motion)
+
+The ``rev`` shape reads a second quantity besides z, its *gate* ``c = g_j . x`` (a row of
+:attr:`ShapedFeatures.gate`; zero for the other shapes): a context column of x that only g's
+prior mean reads (the kernels ignore it, :mod:`microctl.gp.kernels`), here +1 or -1.
 
 Every shape is smooth (CasADi differentiates it exactly) and non-negative. Each feature is
 divided by a fixed ``scale`` (its mean over the training inputs) so the coefficients c_j are
@@ -42,10 +49,14 @@ from microctl.errors import ConfigError
 __all__ = ["SHAPES", "ShapedFeatures", "ShapeTransform"]
 
 #: Shape name -> number of parameters it reads from its row of ``params``.
-SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0, "step": 2}
+SHAPES = {"sq": 0, "abs": 1, "sat": 1, "up": 1, "down": 1, "bump": 2, "exp": 0, "step": 2, "rev": 2}
+#: The shapes that read a gate (see the module docstring).
+GATED = ("rev",)
 
 
-def _shape_np(kind: str, z: np.ndarray, p: np.ndarray) -> np.ndarray:
+def _shape_np(kind: str, z: np.ndarray, p: np.ndarray, c: np.ndarray | None = None) -> np.ndarray:
+    if kind == "rev":
+        return z * z / (z * z + p[0] ** 2) * 0.5 * (1.0 - np.tanh(z * c / p[1]))
     if kind == "sq":
         return z * z
     if kind == "abs":
@@ -65,7 +76,9 @@ def _shape_np(kind: str, z: np.ndarray, p: np.ndarray) -> np.ndarray:
     raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
 
 
-def _shape_ca(kind: str, z: ca.MX, p: np.ndarray) -> ca.MX:
+def _shape_ca(kind: str, z: ca.MX, p: np.ndarray, c: ca.MX | None = None) -> ca.MX:
+    if kind == "rev":
+        return z * z / (z * z + float(p[0]) ** 2) * 0.5 * (1.0 - ca.tanh(z * c / float(p[1])))
     if kind == "sq":
         return z * z
     if kind == "abs":
@@ -103,6 +116,9 @@ class ShapedFeatures:
         Positive divisor of each feature (its mean over the training inputs).
     names : tuple of str
         One name per feature (``"dq4:sq"``, ``"q2:bump@12"``, ...).
+    gate : ndarray, shape (p, d), or None
+        Row j is g_j, the gate ``c = g_j . x`` of a ``rev`` feature (zero rows for the other
+        shapes); None: no feature has a gate.
     """
 
     matrix: np.ndarray
@@ -111,6 +127,7 @@ class ShapedFeatures:
     params: np.ndarray
     scale: np.ndarray
     names: tuple[str, ...]
+    gate: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         A = np.asarray(self.matrix, dtype=float)
@@ -128,6 +145,14 @@ class ShapedFeatures:
                 raise ConfigError(f"shaped noise features: non-finite {what}")
         if np.any(np.asarray(self.scale) <= 0):
             raise ConfigError("shaped noise features: every scale must be positive")
+        if self.gate is not None and np.shape(self.gate) != A.shape:
+            raise ConfigError(f"shaped noise features: gate {np.shape(self.gate)} does not match matrix {A.shape}")
+        if self.gate is None and any(k in GATED for k in self.shapes):
+            raise ConfigError(f"shaped noise features: shape(s) {list(GATED)} need a gate")
+
+    def gates(self, X: np.ndarray) -> np.ndarray | None:
+        """c = X g^T at the rows of X, shape (m, p); None without gates."""
+        return None if self.gate is None else np.asarray(X, dtype=float) @ np.asarray(self.gate, dtype=float).T
 
     @property
     def p(self) -> int:
@@ -141,47 +166,56 @@ class ShapedFeatures:
     def values(self, X: np.ndarray) -> np.ndarray:
         """phi(x) at the rows of X (original units), shape (m, p)."""
         Z = self.linear(X)
+        C = self.gates(X)
         out = np.empty_like(Z)
         params = np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2)
         for kind in set(self.shapes):  # one call per shape, its columns at once (params broadcast)
             idx = [j for j, k in enumerate(self.shapes) if k == kind]
-            out[:, idx] = _shape_np(kind, Z[:, idx], params[idx].T)
+            out[:, idx] = _shape_np(kind, Z[:, idx], params[idx].T, None if C is None else C[:, idx])
         return out / np.asarray(self.scale, dtype=float)
 
     def casadi(self, x: ca.MX) -> ca.MX:
         """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""
         z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), x) + ca.DM(np.asarray(self.offset, dtype=float))
-        return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j])) / float(self.scale[j])
-                            for j, kind in enumerate(self.shapes)])
+        c = None if self.gate is None else ca.mtimes(ca.DM(np.asarray(self.gate, dtype=float)), x)
+        return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j]), None if c is None else c[j])
+                            / float(self.scale[j]) for j, kind in enumerate(self.shapes)])
 
     def subset(self, idx) -> "ShapedFeatures":
         """The features ``idx`` (a sequence of indices), in that order."""
         idx = list(idx)
-        return ShapedFeatures(np.asarray(self.matrix)[idx].reshape(len(idx), -1), np.asarray(self.offset)[idx],
+        d = np.asarray(self.matrix).shape[1]
+        gate = None if self.gate is None else np.asarray(self.gate)[idx].reshape(len(idx), d)
+        if gate is not None and not any(self.shapes[i] in GATED for i in idx):
+            gate = None
+        return ShapedFeatures(np.asarray(self.matrix)[idx].reshape(len(idx), d), np.asarray(self.offset)[idx],
                               tuple(self.shapes[i] for i in idx), np.asarray(self.params)[idx].reshape(len(idx), 2),
-                              np.asarray(self.scale)[idx], tuple(self.names[i] for i in idx))
+                              np.asarray(self.scale)[idx], tuple(self.names[i] for i in idx), gate)
 
     def rescaled(self, X: np.ndarray) -> "ShapedFeatures":
         """The same features with ``scale`` set to each feature's mean over the rows of X
         (floored at 1e-12 of its largest value, and at 1e-300)."""
-        raw = ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.ones(self.p), self.names)
+        raw = ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.ones(self.p), self.names, self.gate)
         V = raw.values(X)
         mean = V.mean(axis=0)
         floor = np.maximum(1e-12 * V.max(axis=0, initial=0.0), 1e-300)
-        return ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.maximum(mean, floor), self.names)
+        return ShapedFeatures(self.matrix, self.offset, self.shapes, self.params, np.maximum(mean, floor), self.names,
+                              self.gate)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The fields as plain arrays (for a model file; :meth:`from_arrays` reads them back)."""
         return {"matrix": np.asarray(self.matrix, dtype=float), "offset": np.asarray(self.offset, dtype=float),
                 "shapes": np.asarray(self.shapes, dtype=str), "params": np.asarray(self.params, dtype=float),
-                "scale": np.asarray(self.scale, dtype=float), "names": np.asarray(self.names, dtype=str)}
+                "scale": np.asarray(self.scale, dtype=float), "names": np.asarray(self.names, dtype=str),
+                **({} if self.gate is None else {"gate": np.asarray(self.gate, dtype=float)})}
 
     @classmethod
     def from_arrays(cls, a: dict) -> "ShapedFeatures":
         p = int(np.asarray(a["matrix"]).shape[0])
         return cls(np.asarray(a["matrix"], dtype=float).reshape(p, -1), np.asarray(a["offset"], dtype=float),
                    tuple(str(s) for s in a["shapes"]), np.asarray(a["params"], dtype=float).reshape(p, 2),
-                   np.asarray(a["scale"], dtype=float), tuple(str(s) for s in a["names"]))
+                   np.asarray(a["scale"], dtype=float), tuple(str(s) for s in a["names"]),
+                   None if "gate" not in a else np.asarray(a["gate"], dtype=float).reshape(p, -1))
 
 
 class ShapeTransform:
@@ -206,11 +240,14 @@ class ShapeTransform:
         if bad:
             raise ConfigError(f"noise feature shape(s) {bad} unknown; valid: {sorted(SHAPES)}")
 
-    def __call__(self, lin):
+    def __call__(self, lin, gate=None):
+        """The features at the standardised linear quantities ``lin`` (features on the last axis,
+        or a CasADi column) and, for ``rev`` features, their gates ``gate`` (same shape; own units)."""
         if isinstance(lin, np.ndarray):
             Z = lin * self.y_scale
             out = np.empty_like(Z)
             for j, kind in enumerate(self.shapes):  # the features are the last axis (any leading shape)
-                out[..., j] = _shape_np(kind, Z[..., j], self.params[j])
+                out[..., j] = _shape_np(kind, Z[..., j], self.params[j], None if gate is None else gate[..., j])
             return out
-        return ca.vertcat(*[_shape_ca(kind, lin[j] * self.y_scale, self.params[j]) for j, kind in enumerate(self.shapes)])
+        return ca.vertcat(*[_shape_ca(kind, lin[j] * self.y_scale, self.params[j], None if gate is None else gate[j])
+                            for j, kind in enumerate(self.shapes)])

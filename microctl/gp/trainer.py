@@ -244,18 +244,21 @@ class VHGPR:
             return self._fit(X, y, t0)
 
     def _fit(self, X: np.ndarray, y: np.ndarray, t0: float) -> FittedVHGPR:
-        n, d = X.shape
+        n, d_all = X.shape
         data = _standardise(X, y)
         Xs, ys = data["Xs"], data["ys"]
         nf = self.noise_features
         noise = self.noise
-        Phi = As = bs = None
+        Phi = As = bs = gate = None
         if nf is not None and nf.p > 0:
             As, bs = nf.standardised(data["x_mean"], data["x_scale"], data["y_scale"])
+            gate = nf.standardised_gate(data["x_mean"], data["x_scale"])
             noise = noise.for_features(nf, data["y_scale"])
-            Phi = noise.design(Xs, As, bs)
+            Phi = noise.design(Xs, As, bs, gate)
         else:
             noise = noise_model_class("hgp")()  # no features: the constant prior mean
+        # the kernels read the first d inputs; a trailing context only g's prior mean reads
+        d = d_all - (0 if nf is None else int(nf.context))
 
         rng = np.random.default_rng(self.random_state)
         # a linear trend is affine: f's kernel gets the constant (bias) term with it
@@ -264,7 +267,7 @@ class VHGPR:
         lin_bounds = self._linear_bounds(d)
         p = 0 if Phi is None else Phi.shape[1]
         if self.warm_start is None:
-            gp, loo, used = fit_homoscedastic(Xs, ys, f_spec, rng, lin_bounds)
+            gp, loo, used = fit_homoscedastic(Xs[:, :d], ys, f_spec, rng, lin_bounds)
             kern = gp[:-1]
             # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
             # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
@@ -299,6 +302,7 @@ class VHGPR:
             "g_feature_matrix": As, "g_feature_offset": bs,
             "g_log_feature_coef": None if Phi is None else np.array(log_c[1:]),
             "g_mean_coef_cov": coef_cov if self.propagate else None,
+            "g_feature_gate": None if gate is None else gate[0], "g_feature_gate_offset": None if gate is None else gate[1],
         }
         for a in list(arrays.values()) + [v for v in optional.values() if v is not None]:
             freeze(a)
@@ -339,7 +343,7 @@ class VHGPR:
         Returns the winning layout, (bound, theta), every run, and the selection record (None
         unless ``"auto"``).
         """
-        n, d = Xs.shape
+        n, d = Xs.shape[0], f_spec.d  # the SE part's lengthscales: the inputs the kernels read
         variants = {"on": (False,), "off": (True,), "auto": (True, False)}[self.se]
         fits = []
         for se_off in variants:

@@ -32,7 +32,7 @@ def test_shaped_features_casadi_equals_numpy_at_random_points():
     p, d = len(kinds), 5
     params = np.column_stack([rng.uniform(0.5, 2, p), rng.uniform(0.5, 2, p)])
     f = ShapedFeatures(rng.normal(size=(p, d)), rng.normal(size=p), kinds, params, rng.uniform(0.5, 2, p),
-                       tuple(f"f{k}" for k in range(p)))
+                       tuple(f"f{k}" for k in range(p)), rng.normal(size=(p, d)))  # gates: read by "rev"
     x = ca.MX.sym("x", d)
     fun = ca.Function("phi", [x], [f.casadi(x)])
     X = rng.normal(size=(20, d))
