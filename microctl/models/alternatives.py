@@ -23,7 +23,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from microctl.gp.shaped_features import ShapedFeatures
+from microctl.gp.shaped_features import GATED, ShapedFeatures
 
 __all__ = ["Alternatives"]
 
@@ -38,14 +38,16 @@ class Alternatives:
         [coefficient per unit of the candidate at scale 1, log-likelihood gain in nats]) and
         ``["noise_selection"]["n"]`` (training moves) are read.
     candidates : ShapedFeatures
-        The stage's candidate features (:func:`~microctl.models.noise_dictionary.candidate_features`);
-        those with a stored entry are used.
+        The stage's candidate features of x = [s; u]
+        (:func:`~microctl.models.noise_dictionary.candidate_features`); those with a stored entry
+        and no gate are used (the ``rev`` sources read the move's context: not weighed here).
     """
 
     def __init__(self, model_info: dict | None, candidates: ShapedFeatures):
         record = (model_info or {}).get("noise_selection", {}) or {}
         alts = record.get("alternatives") or {}
-        idx = [j for j, nm in enumerate(candidates.names) if nm in alts]
+        # a source that reads the move's context (a reversal) is not weighed here: x = [s; u] alone
+        idx = [j for j, nm in enumerate(candidates.names) if nm in alts and candidates.shapes[j] not in GATED]
         self.features: ShapedFeatures | None = candidates.subset(idx) if idx else None
         self.coef = np.array([float(alts[candidates.names[j]][0]) for j in idx])
         gain = np.array([float(alts[candidates.names[j]][1]) for j in idx])

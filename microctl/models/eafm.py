@@ -28,6 +28,7 @@ constant lower-triangular (sparse) DM); this module adds the AFM and the stage b
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ from microctl.gp.fitted import FittedVHGPR
 from microctl.gp.posterior import Posterior
 from microctl.models.afm import AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.alternatives import Alternatives
+from microctl.models.direction import initial
 from microctl.models.noise_dictionary import candidate_features
 
 __all__ = ["EAFM", "EAFMPrediction", "load_residual_model", "bind_to_stage"]
@@ -67,9 +69,18 @@ def _check_output_scale(model: FittedVHGPR, afm: AnalyticForwardModel, source: s
                               "on this stage's residuals, retrain it with `microctl train`")
 
 
+def context_names(n_q: int) -> tuple[str, ...]:
+    """Names of the move's context inputs: each actuator's last direction of motion
+    (:mod:`microctl.models.direction`)."""
+    return tuple(f"dir{i + 1}_prev" for i in range(int(n_q)))
+
+
 def bind_to_stage(model: FittedVHGPR, afm: AnalyticForwardModel) -> FittedVHGPR:
-    """Return ``model`` with ``geometry_hash`` and ``x_names`` of the AFM's stage (eq. 3 input)."""
+    """Return ``model`` with ``geometry_hash`` and ``x_names`` of the AFM's stage (eq. 3 input,
+    and the move's context when the model reads it)."""
     names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
+    if model.n_context:
+        names = names + context_names(model.n_context)
     stage = afm.stage
     binding = {"name": stage.name, "shape_hash": stage.shape_hash(), "physics_hash": stage.physics_hash()}
     return replace(model, geometry_hash=stage.geometry_hash(), x_names=names, y_name="residual_um",
@@ -156,7 +167,8 @@ class EAFM:
         u shape (n_p, 1); every output (1, 1) except q (n_q, 1). Built lazily.
     """
 
-    def __init__(self, afm: AnalyticForwardModel, model: FittedVHGPR | str | Path, *, check_geometry: bool = True):
+    def __init__(self, afm: AnalyticForwardModel, model: FittedVHGPR | str | Path, *, check_geometry: bool = True,
+                 direction: np.ndarray | None = None):
         source = "<in-memory model>"
         if not isinstance(model, FittedVHGPR):
             source = str(model)
@@ -176,12 +188,42 @@ class EAFM:
             error, self.binding_note = _binding_mismatch(model, afm, source)
             if error:
                 raise ConfigError(error)
-        if model.n_inputs != self.n_x:
-            raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs; the EAFM of stage "
-                              f"'{afm.stage.name}' needs x = [s; u] with {self.n_x} (eq. 3)")
+        if model.n_inputs - model.n_context != self.n_x or model.n_context not in (0, self.n_q):
+            raise ConfigError(f"{source}: the residual model has {model.n_inputs} inputs ({model.n_context} of them "
+                              f"context); the EAFM of stage '{afm.stage.name}' needs x = [s; u] with {self.n_x} "
+                              f"(eq. 3), optionally followed by the {self.n_q} actuators' last directions")
+        self.direction = self._checked_direction(direction)
         self.posterior: Posterior = model.posterior
         self._function: ca.Function | None = None
         self._alternatives: Alternatives | None = None
+
+    @property
+    def uses_direction(self) -> bool:
+        """Whether the model reads the move's context, each actuator's last direction of motion
+        (a reversal noise source was selected; :mod:`microctl.models.direction`)."""
+        return self.model.n_context > 0
+
+    def _checked_direction(self, direction: np.ndarray | None) -> np.ndarray:
+        if direction is None:
+            return initial(self.n_q)
+        d = np.asarray(direction, dtype=float).reshape(-1)
+        if d.shape != (self.n_q,) or not np.all(np.isin(d, (-1.0, 1.0))):
+            raise ValueError(f"the actuators' last directions must be {self.n_q} values of +1 or -1, got "
+                             f"{np.asarray(direction).tolist()}")
+        return d
+
+    def with_direction(self, direction: np.ndarray | None) -> "EAFM":
+        """This EAFM for moves made after the actuators last moved in ``direction`` (n_q values of
+        +1 or -1; None: the zero state's, all +1): a new EAFM sharing the model, or ``self`` when
+        the model does not read the direction or it is already this one. Its CasADi graph has
+        the direction built in, so a controller for each direction is a controller of its EAFM."""
+        d = self._checked_direction(direction)
+        if not self.uses_direction or np.array_equal(d, self.direction):
+            return self
+        other = copy.copy(self)
+        other.direction = d
+        other._function = None
+        return other
 
     @property
     def alternatives(self) -> Alternatives:
@@ -194,7 +236,7 @@ class EAFM:
     def alt_var(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The model-averaged extra noise variance of the unselected sources, µm², shape (m,)
         (:meth:`Alternatives.values`; s shape (n_s,) or (m, n_s), u shape (n_p,) or (m, n_p))."""
-        return self.alternatives.values(self._x(s, u))
+        return self.alternatives.values(self._x(s, u)[:, :self.n_x])
 
     @property
     def function(self) -> ca.Function:
@@ -240,8 +282,9 @@ class EAFM:
         allq = ("t_mean", "f_mean", "f_var", "g_mean", "g_var", "q", "t_afm")
         which = allq if which is None else tuple(which)
         x = ca.vertcat(s, u)  # eq. 3: x = [s; u]
+        xc = ca.vertcat(x, ca.DM(self.direction)) if self.uses_direction else x  # and the move's context
         post = self.posterior
-        xs = (x - ca.DM(post.x_mean)) / ca.DM(post.x_scale)
+        xs = (xc - ca.DM(post.x_mean)) / ca.DM(post.x_scale)
         t_afm, q = self.afm.f_a(s, u)  # eq. 14
         gp_which = tuple(k for k in ("f_mean", "f_var", "g_mean", "g_var") if k in which or (k == "f_mean"
                                                                                             and "t_mean" in which))
@@ -261,6 +304,8 @@ class EAFM:
         u = np.atleast_2d(np.asarray(u, dtype=float))
         s = np.atleast_2d(np.asarray(s, dtype=float))
         s = np.broadcast_to(s, (u.shape[0], self.n_s)) if s.shape[0] == 1 else s
+        if self.uses_direction:  # the move's context after x = [s; u]
+            return np.hstack([s, u, np.broadcast_to(self.direction, (u.shape[0], self.n_q))])
         return np.hstack([s, u])
 
     def predict(self, s: np.ndarray, u: np.ndarray) -> EAFMPrediction:
@@ -273,7 +318,7 @@ class EAFM:
         """
         X = self._x(s, u)
         p = self.model.predict(X)
-        U = X[:, self.n_s:]
+        U = X[:, self.n_s:self.n_x]
         t_mean = np.asarray(self.afm.t_of(U)) + p.f_mean
         return EAFMPrediction(t_mean=t_mean, f_mean=p.f_mean, f_var=p.f_var, g_mean=p.g_mean,
                               g_var=p.g_var, t_var=p.y_var, q=self.afm.q_of(U))
@@ -295,7 +340,7 @@ class EAFM:
         f, dx = self.posterior.f_mean_and_grad(self.posterior.standardise(X))
         d = U @ self.afm.w_pred
         t = self.afm.sensor.forward(d) + f  # eq. 13: the gauge reading of the tool displacement
-        dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:]
+        dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:self.n_x]
         return t, dt
 
     # ---- g's posterior (notes/vhgpr.md, prediction): thin calls of the model's Posterior ----
@@ -353,6 +398,8 @@ class EAFM:
         U = np.atleast_2d(np.asarray(U, dtype=float))
         post, ns = self.posterior, self.n_s
         xs_s = (S - post.x_mean[:ns]) / post.x_scale[:ns]
+        if self.uses_direction:  # the move's context, the same for every pair, goes with u
+            U = np.hstack([U, np.broadcast_to(self.direction, (U.shape[0], self.n_q))])
         xs_u = (U - post.x_mean[ns:]) / post.x_scale[ns:]
         return post.g_pairs(xs_s, xs_u, with_gp_var=with_gp_var)
 

@@ -5,7 +5,9 @@ add; :mod:`microctl.gp.shaped_features` eq. 1). Which sources a stage has is not
 candidates below are computed from the stage model, and the data select among them.
 
 Candidates, per actuator i (x = [s; u], s = [t_prev; q_prev], eq. 3; q_i = K_i u, eq. 12;
-dq_i = K_i u - q_i,prev):
+dq_i = K_i u - q_i,prev). They act on x followed by the move's context c (n_q: each actuator's
+last direction of motion, +1 or -1, :mod:`microctl.models.direction`), which only the ``rev``
+sources read; a model that selects none of them is trained on x alone:
 
 ``dq<i>:sq``       dq_i^2                      stick-slip whose std grows with the step
 ``dq<i>:abs``      |dq_i| (smoothed)           creep / settling whose variance grows with the step
@@ -16,6 +18,10 @@ dq_i = K_i u - q_i,prev):
                                                a slip of fixed size beyond d (d = 2, 4 µm)
 ``dq<i>:up``       dq_i^2 on extending moves   direction-dependent slip (one sign of the step)
 ``dq<i>:down``     dq_i^2 on retracting moves
+``dq<i>:rev@s``    dq_i^2/(dq_i^2 + s^2) where   hysteresis: the turning point of a minor loop is
+                   the step reverses the         not repeatable, a move that goes on in the same
+                   actuator's last direction     direction is (s = 1, 4 µm); reads the move's
+                                                 context c_i (:mod:`microctl.models.direction`)
 ``q<i>:bump@c``    a Gaussian bump in q_i      a rough patch of the stroke centred at c (5 centres
                                                over the range, width range/10)
 ``q<i>:ext``       ((q_i - lo) / range)^2      scatter growing with the extension (drive voltage)
@@ -65,7 +71,7 @@ from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["candidate_features", "ball_load_map", "select_features", "Selection", "alternatives", "quantity",
+__all__ = ["candidate_features", "context_width", "ball_load_map", "select_features", "Selection", "alternatives", "quantity",
            "fit_variance_with", "variance_design"]
 
 #: Residual draws under the current fit for the max-statistic p-values, and their seed; the grid
@@ -78,6 +84,13 @@ N_BUMPS, BUMP_WIDTH = 5, 0.1
 STEP_EPS_UM, SAT_UM = 0.2, 2.0
 #: The other saturation steps, and the breakaway steps with the breakaway's width, µm.
 SAT_MORE_UM, BREAKAWAY_UM, BREAKAWAY_WIDTH_UM = (1.0, 4.0), (2.0, 4.0), 0.5
+#: Saturation steps of the reversal sources, µm (as ``sat@1``, ``sat@4``).
+REVERSAL_SAT_UM = (1.0, 4.0)
+
+
+def context_width(afm: AnalyticForwardModel) -> int:
+    """Columns of the move's context after x = [s; u] (each actuator's last direction)."""
+    return afm.n_q
 
 
 def ball_load_map(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
@@ -105,29 +118,34 @@ def ball_load_map(afm: AnalyticForwardModel) -> tuple[np.ndarray, np.ndarray]:
     return F[0], (F[1:] - F[0]).T
 
 
-def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
+def candidate_features(afm: AnalyticForwardModel, *, context: bool = False) -> ShapedFeatures:
     """Every candidate source of the module docstring for this stage (scale 1; see
-    :meth:`ShapedFeatures.rescaled`)."""
+    :meth:`ShapedFeatures.rescaled`).
+
+    ``context=False``: the sources of x = [s; u] alone (no ``rev``), on its n_s + n_p columns;
+    True: all of them, on x followed by the move's context (:func:`context_width` columns)."""
     n_p, n_s = afm.n_p, afm.n_s
-    d = n_s + n_p
+    d = n_s + n_p + (context_width(afm) if context else 0)  # x = [s; u] (and the move's context c)
+    pose = slice(n_s, n_s + n_p)
     lo, hi = afm.stage.range_lo, afm.stage.range_hi
     f0, B = ball_load_map(afm)
     f_s = max(float(np.mean(np.abs(f0))) / 4.0, 1e-9)
-    rows, offs, shapes, params, names = [], [], [], [], []
+    rows, offs, shapes, params, names, gates = [], [], [], [], [], []
 
-    def add(a, b, shape, p, name):
+    def add(a, b, shape, p, name, gate=None):
         rows.append(a)
         offs.append(b)
         shapes.append(shape)
         params.append(p)
         names.append(name)
+        gates.append(np.zeros(d) if gate is None else gate)
 
     for i, nm in enumerate(afm.actuator_names):
         step = np.zeros(d)
         step[1 + i] = -1.0
-        step[n_s:] = afm.K[i]
+        step[pose] = afm.K[i]
         end = np.zeros(d)
-        end[n_s:] = afm.K[i]
+        end[pose] = afm.K[i]
         add(step, 0.0, "sq", (0.0, 0.0), f"d{nm}:sq")
         add(step, 0.0, "abs", (STEP_EPS_UM, 0.0), f"d{nm}:abs")
         add(step, 0.0, "sat", (SAT_UM, 0.0), f"d{nm}:sat")
@@ -137,13 +155,18 @@ def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
             add(step, 0.0, "step", (d_um, BREAKAWAY_WIDTH_UM), f"d{nm}:step@{d_um:g}")
         add(step, 0.0, "up", (STEP_EPS_UM, 0.0), f"d{nm}:up")
         add(step, 0.0, "down", (STEP_EPS_UM, 0.0), f"d{nm}:down")
+        if context:
+            last = np.zeros(d)
+            last[n_s + n_p + i] = 1.0  # c_i
+            for s_um in REVERSAL_SAT_UM:
+                add(step, 0.0, "rev", (s_um, STEP_EPS_UM), f"d{nm}:rev@{s_um:g}", last)
         span = max(float(hi[i] - lo[i]), 1e-9)
         for k in range(N_BUMPS):
             c = float(lo[i] + (k + 0.5) * span / N_BUMPS)
             add(end, 0.0, "bump", (c, BUMP_WIDTH * span), f"{nm}:bump@{c:g}")
         add(end / span, -float(lo[i]) / span, "sq", (0.0, 0.0), f"{nm}:ext")
         load = np.zeros(d)
-        load[n_s:] = -B[i] / f_s
+        load[pose] = -B[i] / f_s
         add(load, -float(f0[i]) / f_s, "exp", (0.0, 0.0), f"f{i + 1}:light")
     K_pinv = np.linalg.pinv(afm.K)  # u_prev = K^+ q_prev (exact on the reachable set)
     for j, c in enumerate(afm.dof):
@@ -155,7 +178,7 @@ def candidate_features(afm: AnalyticForwardModel) -> ShapedFeatures:
         add(step, 0.0, "sq", (0.0, 0.0), f"d{c}:sq")
         add(end, 0.0, "sq", (0.0, 0.0), f"{c}:sq")
     return ShapedFeatures(np.array(rows), np.array(offs), tuple(shapes), np.array(params), np.ones(len(rows)),
-                          tuple(names))
+                          tuple(names), np.array(gates) if context else None)
 
 
 @dataclass(frozen=True)

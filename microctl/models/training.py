@@ -23,7 +23,8 @@ from microctl.gp.noise_models import noise_model_class, noise_model_names
 from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
-from microctl.models.eafm import bind_to_stage
+from microctl.models.direction import log_directions
+from microctl.models.eafm import bind_to_stage, context_names
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
 from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, tail_bound
 from microctl.util.fields import setting, validate_settings
@@ -43,11 +44,30 @@ class ResidualData:
     y : ndarray, shape (n,)
         ``t' - T_t f_a(s_prev, u)`` (µm); with hysteresis corrections f_a includes the loop.
     x_names : tuple of str
+    direction : ndarray, shape (n, n_q), or None
+        The move's context: each actuator's last direction of motion before the move (+1 or
+        -1, :mod:`microctl.models.direction`), which only a reversal noise source reads; None
+        when not known (then no such source is a candidate: every row counts as +1).
     """
 
     X: np.ndarray
     y: np.ndarray
     x_names: tuple[str, ...]
+    direction: np.ndarray | None = None
+
+    def context_inputs(self, n_q: int) -> np.ndarray:
+        """``[s_prev; u; c]`` per row (c: ``direction``, +1 where unknown), shape (n, n_s + n_p + n_q)."""
+        c = np.ones((self.X.shape[0], n_q)) if self.direction is None else self.direction
+        return np.hstack([self.X, c])
+
+    def rows(self, idx) -> "ResidualData":
+        """The rows ``idx`` (indices or a mask), in that order."""
+        return ResidualData(X=self.X[idx], y=self.y[idx], x_names=self.x_names,
+                            direction=None if self.direction is None else self.direction[idx])
+
+    def with_context(self, n_q: int) -> "ResidualData":
+        """The same rows with the context as trailing input columns (:meth:`context_inputs`)."""
+        return ResidualData(X=self.context_inputs(n_q), y=self.y, x_names=self.x_names + context_names(n_q))
 
 
 def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
@@ -73,7 +93,7 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
         t_afm = t_afm + afm.memory.reading_shift(u @ afm.w_pred, afm.memory.run_shift(afm.q_of(u), s[:, 1:]))
     y = t - t_afm  # eq. 3: y = t' - T_t f_a(s, u)
     names = tuple(f"{n}_prev" for n in afm.state_names) + tuple(f"u_{n}" for n in afm.dof)
-    return ResidualData(X=np.hstack([s, u]), y=y, x_names=names)
+    return ResidualData(X=np.hstack([s, u]), y=y, x_names=names, direction=log_directions(s[:, 1:], afm.q_of(u)))
 
 
 #: Most rows the exact VHGPR is trained on: its cost grows as n³ (3000 rows took over 4 minutes
@@ -294,9 +314,11 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     shapes = [cands.shapes[j] for j in sel.indices]
     params = [tuple(float(v) for v in np.asarray(cands.params)[j]) for j in sel.indices]
     names = [cands.names[j] for j in sel.indices]
+    gates = [np.asarray(cands.gate)[j] for j in sel.indices]
     if sel.tilt is not None:  # exp(w . (u - mu) / sd) as a linear map of x = [s; u]
-        a = np.zeros(data.X.shape[1])
-        a[afm.n_s:] = sel.tilt / sd
+        a = np.zeros(data.X.shape[1] + afm.n_q)  # x = [s; u] and the move's context
+        a[afm.n_s:afm.n_s + afm.n_p] = sel.tilt / sd
+        gates.append(np.zeros_like(a))
         rows.append(a)
         offs.append(-float(sel.tilt @ (mu / sd)))
         shapes.append("exp")
@@ -308,7 +330,7 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     if sel.swaps:
         record["shape_swaps"] = [list(sw) for sw in sel.swaps]
     record["screened"] = screened
-    model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time)
+    model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time)
     # a source the fit inside the bound does not support (its coefficient within one Laplace
     # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training
     # move) is not a source of this stage: refit without it
@@ -321,11 +343,11 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         # on many rows (sparse) the refit starts where the larger fit ended (one run)
         model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
                               [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
-                              max_time, warm_start=model if sparse else None)
+                              [gates[j] for j in keep], max_time, warm_start=model if sparse else None)
     # every candidate added alone at its best size, with its likelihood gain: the controller's
     # least-motion rule (microctl.control.credible) weighs these alternatives by their evidence
-    pred = model.predict(data.X)
-    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(data.X))
+    pred = model.predict(data.context_inputs(afm.n_q) if model.n_context else data.X)
+    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(data.context_inputs(afm.n_q)))
     coef = coef / np.asarray(cands.scale, dtype=float)  # per unit of the candidate at scale 1
     record["alternatives"] = {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
     record["n"] = int(len(data.y))
@@ -385,16 +407,17 @@ def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         # hyperparameters are fitted on does (the selection still reads all n residuals), from
         # one start; f's SE part is chosen there (BIC) once for the fits that follow
         idx = subset_rows(np.random.default_rng(st.seed), len(data.y), SPARSE_SUBSET)
-        sub = ResidualData(X=data.X[idx], y=data.y[idx], x_names=data.x_names)
+        sub = data.rows(idx)
         first = _fit(sub, afm, replace(st, gp="exact", restarts=1), noise_features_for(afm), "physical", max_time)
         st = _with_chosen_se(st, first)
     else:
         first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
     r = data.y - first.predict(data.X).f_mean
-    cands = candidate_features(afm).rescaled(data.X)
+    cands = candidate_features(afm, context=True).rescaled(data.context_inputs(afm.n_q))
     U = data.X[:, afm.n_s:]
     mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
-    sel = select_features(r, cands.values(data.X), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
+    sel = select_features(r, cands.values(data.context_inputs(afm.n_q)), cands.names, tilt_inputs=(U - mu) / sd,
+                          alpha=SELECTION_ALPHA)
     return _Sources(st, first, idx, r, cands, sel, mu, sd)
 
 
@@ -436,7 +459,7 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
         room = max_screened(n0) - len(rows)
         if room <= 0:
             break
-        found = screen_rows(src.r, src.cands.values(data.X)[:, list(src.sel.indices)],
+        found = screen_rows(src.r, src.cands.values(data.context_inputs(afm.n_q))[:, list(src.sel.indices)],
                             tilt_inputs=src.tilt_inputs(data, afm.n_s) if src.sel.tilt is not None else None,
                             tilt=src.sel.tilt,
                             local_inputs=_positions(data, afm), max_rows=room)
@@ -448,7 +471,7 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
         rows += [int(original[i]) for i, _ in confirmed]
         zs += [float(z) for _, z in confirmed]
         keep = np.setdiff1d(np.arange(len(data.y)), [i for i, _ in confirmed])
-        data, original = ResidualData(X=data.X[keep], y=data.y[keep], x_names=data.x_names), original[keep]
+        data, original = data.rows(keep), original[keep]
         src = _select_sources(data, afm, st, max_time)
     order = np.argsort(rows)
     return data, src, {"rows": [rows[k] for k in order], "z": [zs[k] for k in order], "bound": float(tails),
@@ -467,7 +490,7 @@ def _deletion_z(data: ResidualData, afm: AnalyticForwardModel, src: _Sources, i:
     if i in rows:
         keep = rows[rows != i]
         st = _with_chosen_se(replace(src.st, gp="exact", restarts=1), model)
-        model = _fit(ResidualData(X=data.X[keep], y=data.y[keep], x_names=data.x_names), afm, st,
+        model = _fit(data.rows(keep), afm, st,
                      noise_features_for(afm), "physical", max_time, warm_start=model)
     p = model.predict(data.X[i:i + 1])
     return float((data.y[i] - p.f_mean[0]) / np.sqrt(p.f_var[0] + np.exp(p.g_mean[0] + 0.5 * p.g_var[0])))
@@ -481,12 +504,20 @@ PRUNE_SHARE = 1e-3
 PRUNE_Z = 1.0
 
 
-def _fit_selected(data, afm, st, rows, offs, names, shapes, params, max_time, warm_start=None) -> FittedVHGPR:
-    """The residual model with exactly the given sources as g's prior mean (none: the constant)."""
+def _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time, warm_start=None) -> FittedVHGPR:
+    """The residual model with exactly the given sources as g's prior mean (none: the constant).
+
+    The sources act on x = [s; u] and the move's context; when none reads the context (no
+    reversal source), the model is trained on x alone."""
     if not names:  # the constant prior mean, under the dictionary's name (it chose no source)
         return replace(_fit(data, afm, st, None, "hgp", max_time, warm_start), noise_model_name="dictionary")
-    feats = NoiseFeatures(np.array(rows), np.array(offs), tuple(names), tuple(shapes), tuple(params))
-    return _fit(data, afm, st, feats, "dictionary", max_time, warm_start)
+    A, G, d = np.array(rows), np.array(gates), data.X.shape[1]
+    if not np.any(G):
+        feats = NoiseFeatures(A[:, :d], np.array(offs), tuple(names), tuple(shapes), tuple(params))
+        return _fit(data, afm, st, feats, "dictionary", max_time, warm_start)
+    feats = NoiseFeatures(A, np.array(offs), tuple(names), tuple(shapes), tuple(params), gate=G,
+                          context=A.shape[1] - d)
+    return _fit(data.with_context(afm.n_q), afm, st, feats, "dictionary", max_time, warm_start)
 
 
 def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:

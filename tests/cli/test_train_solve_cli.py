@@ -93,7 +93,7 @@ def test_train_options_and_noise_report(trained, capsys, tmp_path):
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "d.npz"), "--restarts", "1"])
     err = capsys.readouterr().out
     from microctl.models.noise_dictionary import candidate_features
-    n_cand = len(candidate_features(trained[3]).names) + 1  # + the tilt group
+    n_cand = len(candidate_features(trained[3], context=True).names) + 1  # + the tilt group
     assert rc == 0 and f"noise model dictionary: no noise source selected among {n_cand} candidates" in err
     assert FittedVHGPR.load(tmp_path / "d.npz").noise_model == "dictionary"
     rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "x.npz"), "--no-linear-trend",
