@@ -31,13 +31,16 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from microctl.control.context import ByDirection
 from microctl.control.controller import AFMController, ControllerSettings, OptimalController, with_baseline
 from microctl.control.memory import MemoryCompensated, with_memory
-from microctl.control.result import ControlResult
+from microctl.control.result import ControlResult, MoveRecord
 from microctl.errors import BackendError, ConfigError, SolveError
 from microctl.measurement.appending import append_log_writer
 from microctl.measurement.log import Measurement, MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
+from microctl.models.direction import after_move
+from microctl.models.direction import initial as initial_direction
 from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
 from microctl.util.signals import interrupts_deferred, raise_if_interrupted
@@ -256,9 +259,11 @@ class Controller:
 
     def _load(self, model: Any) -> None:
         eafm = EAFM(self.stage.afm, model)
-        # with hysteresis corrections the controller meets the target with the play states
-        ctl = with_memory(OptimalController(eafm, self.settings), self.stage.afm)
-        self.eafm, self.optimal = eafm, ctl
+        # with hysteresis corrections the controller meets the target with the play states; a
+        # model that reads the actuators' last directions gets a controller per direction
+        self._by_direction = ByDirection(eafm, lambda e: with_memory(OptimalController(e, self.settings),
+                                                                     self.stage.afm))
+        self.eafm, self.optimal = eafm, self._by_direction(None)
         self.model_source = eafm.source
         self._baseline: AFMController | None = None
 
@@ -280,7 +285,8 @@ class Controller:
         return self.optimal.reachable_interval(self.stage.check_state(state))
 
     def solve(self, target_um: float, state: Sequence[float] | np.ndarray | None = None, *,
-              baseline: bool = False, memory: np.ndarray | None = None) -> ControlResult:
+              baseline: bool = False, memory: np.ndarray | None = None,
+              direction: np.ndarray | None = None) -> ControlResult:
         """The optimal control signal for ``target_um`` from ``state`` (default the zero state).
 
         Parameters
@@ -294,6 +300,10 @@ class Controller:
             The hysteresis play states before the move, for a stage with hysteresis corrections
             (:mod:`microctl.control.memory`; default: one move from the zero state to the
             state's q). :class:`Operator` passes them from the commands it sent.
+        direction : ndarray, shape (n_q,), optional
+            Each actuator's last direction of motion (+1 or -1), read by a model with a reversal
+            noise source (:mod:`microctl.models.direction`; default: the zero state's, all +1).
+            :class:`Operator` passes it from the commands it sent.
 
         Returns
         -------
@@ -309,15 +319,16 @@ class Controller:
         """
         target = _finite(target_um, "target_um")
         s = self.stage.check_state(state)
-        carries = isinstance(self.optimal, MemoryCompensated)
+        optimal = self._by_direction(direction)
+        carries = isinstance(optimal, MemoryCompensated)
         if carries and memory is None:
-            memory = self.optimal.default_memory(s)
-        res = self.optimal.solve(target, s, memory=memory) if carries else self.optimal.solve(target, s)
+            memory = optimal.default_memory(s)
+        res = optimal.solve(target, s, memory=memory) if carries else optimal.solve(target, s)
         if baseline:
             if self._baseline is None:
                 self._baseline = with_memory(AFMController(self.stage.afm, self.settings, reporter=self.eafm),
                                              self.stage.afm)
-            res = with_baseline(self.eafm, res, self._baseline, self.settings.credible_level,
+            res = with_baseline(self.eafm.with_direction(direction), res, self._baseline, self.settings.credible_level,
                                 memory=memory if carries else None)
         return res
 
@@ -357,59 +368,6 @@ def _finite(value: Any, name: str) -> float:
     return v
 
 
-@dataclass(frozen=True)
-class MoveRecord:
-    """One executed move.
-
-    Attributes
-    ----------
-    seq : int
-        Its ``seq`` in the log (or the count of moves made, without a log).
-    target_um : float
-    state_before : ndarray, shape (n_s,)
-        s = [t; q] the command was computed from (the backend's state).
-    u : ndarray, shape (n_p,)
-        The control signal sent.
-    q_um : ndarray, shape (n_q,)
-        The actuator commands sent (inside the configured ranges).
-    predicted_um, predicted_std_um : float
-        The EAFM's predicted pose and its predicted scatter (std) at the command.
-    measured_um : float
-        The gauge after the move.
-    time_s : float
-        When the move had settled (s since the backend's start).
-    solution : ControlResult
-    """
-
-    seq: int
-    target_um: float
-    state_before: np.ndarray
-    u: np.ndarray
-    q_um: np.ndarray
-    predicted_um: float
-    predicted_std_um: float
-    measured_um: float
-    time_s: float
-    solution: ControlResult
-
-    @property
-    def error_um(self) -> float:
-        """measured - target, µm."""
-        return self.measured_um - self.target_um
-
-    def to_dict(self, stage: Stage) -> dict:
-        """Plain JSON-able form (what ``microctl move --json`` and ``serve`` print)."""
-        return {
-            "seq": self.seq, "target_um": self.target_um,
-            "state_before": dict(zip(stage.state_names, map(float, self.state_before))),
-            "u": dict(zip(stage.dof, map(float, self.u))), "q_um": self.q_um.tolist(),
-            "predicted_um": self.predicted_um, "predicted_std_um": self.predicted_std_um,
-            "measured_um": self.measured_um, "error_um": self.error_um, "time_s": self.time_s,
-            "status": self.solution.status, "success": self.solution.success,
-            "solve_time_s": self.solution.solve_time_s,
-        }
-
-
 class Operator:
     """Moves a stage with a controller and keeps every executed move in a measurement log.
 
@@ -446,6 +404,10 @@ class Operator:
         # command sent; before the first: one move from the zero state to the backend's q
         self.memory = afm.memory.step(None, np.asarray(backend.state, dtype=float)[1:]) if afm.memory.active \
             else None
+        # each actuator's last direction of motion, stepped with every command sent (the same
+        # convention: one move from the zero state to the backend's q before the first)
+        self.direction = after_move(initial_direction(afm.n_q), np.zeros(afm.n_q),
+                                              np.asarray(backend.state, dtype=float)[1:])
         if log is not None:
             self._writer, self._seq, self._time_offset = append_log_writer(log, self.stage.config.stage,
                                                                            MOVE_LOG_COLUMNS)
@@ -474,9 +436,9 @@ class Operator:
         BackendError
             From the device (the log keeps every completed move).
         """
-        s = self.backend.state
-        res = self.controller.solve(target_um, s) if self.memory is None else \
-            self.controller.solve(target_um, s, memory=self.memory)
+        s, last = self.backend.state, self.direction
+        res = self.controller.solve(target_um, s, direction=last) if self.memory is None else \
+            self.controller.solve(target_um, s, memory=self.memory, direction=last)
         lo, hi = self.stage.range_um
         tol = self.controller.settings.range_tol
         if not (np.all(np.isfinite(res.q)) and np.all(res.q >= lo - tol) and np.all(res.q <= hi + tol)):
@@ -497,10 +459,12 @@ class Operator:
             self.moves += 1
             if self.memory is not None:
                 self.memory = self.stage.afm.memory.step(self.memory, np.asarray(m.q_um, dtype=float))
+            self.direction = after_move(self.direction, np.asarray(s, dtype=float)[1:],
+                                                  np.asarray(m.q_um, dtype=float))
         return MoveRecord(seq=seq, target_um=res.target_um, state_before=s, u=np.asarray(m.u, dtype=float),
                           q_um=np.asarray(m.q_um, dtype=float), predicted_um=res.predicted_um,
                           predicted_std_um=res.predicted_std_um, measured_um=float(m.t_um), time_s=float(m.time_s),
-                          solution=res)
+                          solution=res, direction_before=last)
 
     def close(self) -> None:
         """Close the log and the backend (idempotent)."""
@@ -571,6 +535,8 @@ class Learner:
 
             ctl, u = self.operator.controller, np.asarray(record.u, dtype=float)
             x = np.concatenate([np.asarray(record.state_before, dtype=float), u])
+            if ctl.eafm.uses_direction:  # the move's context, after x = [s; u]
+                x = np.concatenate([x, ctl.eafm.with_direction(record.direction_before).direction])
             y = record.measured_um - float(np.ravel(self.operator.stage.afm.t_of(u[None, :]))[0])
             if record.solution is not None:  # the hysteresis loop's part of the AFM prediction (0 without)
                 y -= record.solution.hysteresis_um

@@ -1,15 +1,17 @@
 """What a controller returns: :class:`ControlResult` (one move), :class:`SequenceResult` (a planned
 sequence of moves) and :class:`NoiseComparison` (whether the chosen pose is credibly quieter
-than a baseline's); and the :class:`Controller` protocol every controller satisfies."""
+than a baseline's); the :class:`Controller` protocol every controller satisfies; and
+:class:`MoveRecord`, one move a controller's result was executed with
+(:class:`microctl.api.Operator`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Controller", "ControlResult", "SequenceResult", "NoiseComparison"]
+__all__ = ["Controller", "ControlResult", "SequenceResult", "NoiseComparison", "MoveRecord"]
 
 
 @runtime_checkable
@@ -210,4 +212,60 @@ class SequenceResult:
             "status": self.status, "success": self.success, "iterations": self.iterations,
             "n_starts": self.n_starts, "warm_started": self.warm_started, "solve_time_s": self.solve_time_s,
             "steps": [r.to_dict(names) for r in self.steps],
+        }
+
+
+@dataclass(frozen=True)
+class MoveRecord:
+    """One executed move.
+
+    Attributes
+    ----------
+    seq : int
+        Its ``seq`` in the log (or the count of moves made, without a log).
+    target_um : float
+    state_before : ndarray, shape (n_s,)
+        s = [t; q] the command was computed from (the backend's state).
+    u : ndarray, shape (n_p,)
+        The control signal sent.
+    q_um : ndarray, shape (n_q,)
+        The actuator commands sent (inside the configured ranges).
+    predicted_um, predicted_std_um : float
+        The EAFM's predicted pose and its predicted scatter (std) at the command.
+    measured_um : float
+        The gauge after the move.
+    time_s : float
+        When the move had settled (s since the backend's start).
+    solution : ControlResult
+    direction_before : ndarray, shape (n_q,), or None
+        Each actuator's last direction of motion before the move (:mod:`microctl.models.direction`).
+    """
+
+    seq: int
+    target_um: float
+    state_before: np.ndarray
+    u: np.ndarray
+    q_um: np.ndarray
+    predicted_um: float
+    predicted_std_um: float
+    measured_um: float
+    time_s: float
+    solution: ControlResult
+    direction_before: np.ndarray | None = None
+
+    @property
+    def error_um(self) -> float:
+        """measured - target, µm."""
+        return self.measured_um - self.target_um
+
+    def to_dict(self, stage: Any) -> dict:
+        """Plain JSON-able form (what ``microctl move --json`` and ``serve`` print)."""
+        return {
+            "seq": self.seq, "target_um": self.target_um,
+            "state_before": dict(zip(stage.state_names, map(float, self.state_before))),
+            "u": dict(zip(stage.dof, map(float, self.u))), "q_um": self.q_um.tolist(),
+            "predicted_um": self.predicted_um, "predicted_std_um": self.predicted_std_um,
+            "measured_um": self.measured_um, "error_um": self.error_um, "time_s": self.time_s,
+            "status": self.solution.status, "success": self.solution.success,
+            "solve_time_s": self.solution.solve_time_s,
         }

@@ -16,8 +16,10 @@ import math
 
 import numpy as np
 
+from microctl.control.context import ByDirection
 from microctl.control.controller import ControllerSettings, OptimalController
 from microctl.diagnosis.data import DiagnosisData
+from microctl.models import direction
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
 from microctl.models.training import (
@@ -69,20 +71,21 @@ def control_comparison(config: StageConfig, extended: StageConfig, data: Diagnos
     for label, cfg in (("plain", config), ("extended", extended)):
         afm = AnalyticForwardModel(cfg.stage)
         model = train_residual_model(residual_dataset(data, afm), afm, ResidualModelSettings(seed=seed, **COMPARISON_SETTINGS))
-        ctrls[label] = OptimalController(EAFM(afm, model), settings)
-    zero = ctrls["plain"].afm.zero_state()
+        # a model that reads the actuators' last directions: a controller per direction
+        ctrls[label] = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, settings))
+    zero = ctrls["plain"]().afm.zero_state()
     # targets both models reach from the zero state, as fractions of the common positive range
-    hi = min(c.reachable_interval(zero)[1] for c in ctrls.values())
+    hi = min(c().reachable_interval(zero)[1] for c in ctrls.values())
     targets = [float(f * hi) for f in TARGET_FRACTIONS]
     out: dict = {"targets_um": targets, "truth": truth, "models": {}}
-    for label, ctrl in ctrls.items():
+    for label, by_dir in ctrls.items():
         rows = []
         stage = SimulatedStage(config, seed=seed) if truth else None
-        oracle = OracleController(ctrl.afm, stage) if truth else None
-        s = zero
+        oracle = OracleController(by_dir().afm, stage) if truth else None
+        s, last = zero, direction.initial(len(zero) - 1)
         prev = None
         for target in targets:
-            res = ctrl.solve(target, s, u_init=prev)
+            res = by_dir(last).solve(target, s, u_init=prev)
             row = {"target_um": target, "q_um": res.q.tolist(), "predicted_std_um": res.predicted_std_um,
                    "noise_std_um": res.noise_std_um}
             if truth:
@@ -90,6 +93,7 @@ def control_comparison(config: StageConfig, extended: StageConfig, data: Diagnos
                 row["true_error_um"] = float(stage.true_mean(s, res.u)) - target
                 row["oracle_std_um"] = oracle.solve(target, s).predicted_std_um
             rows.append(row)
+            last = direction.after_move(last, s[1:], res.q)
             s = np.concatenate([[res.predicted_um], res.q])
             prev = res.u
         out["models"][label] = rows

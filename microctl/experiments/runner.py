@@ -29,12 +29,14 @@ import numpy as np
 from microctl.backends import make_backend
 from microctl.backends.base import StageBackend
 from microctl.control.controller import ControlResult, OptimalController
+from microctl.control.context import ByDirection
 from microctl.control.memory import with_memory
 from microctl.errors import BackendError, SolveError
 import microctl.experiments.controllers as registry
 from microctl.experiments.config import ExperimentConfig
 from microctl.measurement.design import space_filling_moves, training_moves
 from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
+from microctl.models import direction
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
 from microctl.models.outlier_screen import describe_screen
@@ -281,15 +283,19 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
         for k in range(T):
             with run.backend(cfg.seeds.absolute_stage + k) as b:
                 truth = run.truth(b)
+                last = direction.after_move(direction.initial(afm.n_q), np.zeros(afm.n_q), b.state[1:])
                 for i, u in enumerate(U):
+                    q_before = b.state[1:]
                     rec.move(b, zero, trial=k, point=-1, controller="none")
                     s = b.state
-                    p = eafm.predict(s, u)
+                    last = direction.after_move(last, q_before, s[1:])
+                    p = eafm.with_direction(last).predict(s, u)  # the direction: a model with reversals
                     eafm_mean[k, i], eafm_std[k, i] = float(p.t_mean[0]) + loop[i], math.sqrt(float(p.t_var[0]))
                     if truth is not None:
                         true_mean[k, i] = float(truth.true_mean(s, u))
                         true_std[k, i] = math.sqrt(float(truth.true_var(s, u)))
                     m, _ = rec.move(b, u, trial=k, point=i, controller="none")
+                    last = direction.after_move(last, s[1:], b.state[1:])
                     meas[k, i] = m.t_um
                     pr.step()
     run.timings_s["absolute"] = time.perf_counter() - t0
@@ -329,8 +335,11 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
     ctrls = _controllers(run, eafm)
     res: dict[str, Any] = {}
     with Progress(len(ctrls) * T * J, "incremental movement", quiet=run.quiet) as pr:
-        for name, ctrl in ctrls.items():
+        for name, ctrl0 in ctrls.items():
             spec = registry.entry(name)
+            # a model that reads the actuators' last directions: a move-by-move controller per direction
+            by_dir = None if spec.needs_truth or spec.sequence or not eafm.uses_direction else \
+                ByDirection(eafm, lambda e, n=name: registry.entry(n).build(run, e))
             r = {key: np.full((T, J), np.nan) for key in
                  ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s",
                   "prob_quieter_than_afm", "credibly_quieter_than_afm")}
@@ -343,14 +352,16 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                 with run.backend(cfg.seeds.incremental_stage + k) as b:
                     truth = run.truth(b)
                     if spec.needs_truth:
-                        ctrl.bind(truth)
+                        ctrl0.bind(truth)
                     rec.move(b, np.zeros(afm.n_p), trial=k, target_um=0.0, controller=name)  # the zero state
                     prev_u = None
                     plan: Any = None
                     # hysteresis corrections: the play states, stepped with every command sent
                     memory = afm.memory.step(None, b.state[1:]) if carries else None
+                    last = direction.after_move(direction.initial(afm.n_q), np.zeros(afm.n_q), b.state[1:])
                     for j, target in enumerate(targets):
                         s = b.state
+                        ctrl = ctrl0 if by_dir is None else by_dir(last)
                         if spec.sequence:
                             sol, plan = _sequence_step(ctrl, spec.replan, targets[j:], s, plan, run, r,
                                                        fallback=ctrls["afm"], memory=memory)
@@ -363,6 +374,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                         r["reached_um"][k, j] = m.t_um
                         if memory is not None:
                             memory = afm.memory.step(memory, b.state[1:])
+                        last = direction.after_move(last, s[1:], b.state[1:])
                         r["predicted_um"][k, j] = sol.predicted_um
                         r["predicted_std_um"][k, j] = sol.predicted_std_um
                         r["solve_time_s"][k, j] = sol.solve_time_s

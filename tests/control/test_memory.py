@@ -144,9 +144,11 @@ class _Recorder:
         self.inner = with_memory(AFMController(stage.afm, None), stage.afm)
         self.settings = self.inner.settings
         self.given: list = []
+        self.directions: list = []
 
-    def solve(self, target_um, state, memory=None):
+    def solve(self, target_um, state, memory=None, direction=None):
         self.given.append(None if memory is None else memory.copy())
+        self.directions.append(None if direction is None else np.array(direction))
         return self.inner.solve(target_um, state, memory=memory)
 
 
@@ -170,6 +172,13 @@ def test_operator_steps_the_play_states_with_the_commands_it_sends():
     for k, z in enumerate(rec.given):
         want = mem.after_run(np.array(sent[:k]), mem.zero()) if k else mem.zero()
         np.testing.assert_allclose(z, want, atol=1e-12)
+    # and each actuator's last direction of motion (+1 from the zero state; a held actuator keeps it)
+    q = np.vstack([np.zeros(len(sent[0]))] + sent)
+    last = np.ones(q.shape[1])
+    for k, d in enumerate(rec.directions):
+        np.testing.assert_array_equal(d, last)
+        step = q[k + 1] - q[k]
+        last = np.where(step != 0, np.sign(step), last)
 
 
 @pytest.mark.slow
