@@ -76,10 +76,12 @@ from microctl.control.controller import (  # noqa: E402
     OptimalController,
     RedundantSet,  # noqa: E402
 )
+from microctl.control.context import ByDirection  # noqa: E402
 from microctl.control.oracle import OracleController  # noqa: E402
 from microctl.measurement.design import training_moves  # noqa: E402
 from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
+from microctl.models import direction  # noqa: E402
 from microctl.models.eafm import EAFM  # noqa: E402
 from microctl.models.training import (  # noqa: E402
     ResidualModelSettings,
@@ -214,16 +216,16 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
             t0 = time.perf_counter()
             model = train_on_rig(cfg, afm, meth.design, n, seed, meth.model)
             t_fit = time.perf_counter() - t0
-            eafm = EAFM(afm, model)
-            ctrl = OptimalController(eafm, meth.controller)
+            ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
             base = AFMController(afm)
             rows = []
             with SimulatedStage(cfg, seed=seed + 20_000) as stage:
                 oracle = OracleController(afm, stage)
-                prev = None
+                prev, last = None, direction.initial(afm.n_q)  # the directions, from the commands sent
                 for target in TARGETS_UM:
                     s = stage.state
-                    res = ctrl.solve(target, s, u_init=prev)
+                    res = ctrls(last).solve(target, s, u_init=prev)
+                    last = direction.after_move(last, s[1:], res.q)
                     o = oracle.solve(target, s)
                     a = base.solve(target, s)
                     true_mean = float(stage.true_mean(s, res.u))
@@ -315,16 +317,18 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                 data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
             model = train_residual_model(data, afm, meth.model)
             t_fit = time.perf_counter() - t0
-            ctrl = OptimalController(EAFM(afm, model), meth.controller)
+            ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
             base = AFMController(afm)
             rows = []
             with rig.stage(seed + 20_000) as stage:
                 oracle = OracleController(afm, stage, **FAMILY_ORACLE)
-                prev = None
+                prev, last = None, direction.initial(afm.n_q)  # the directions, from the commands sent
                 for k, target in enumerate(TARGETS_UM):
-                    rows.append(_score_target(stage, ctrl, oracle, base, target, stage.state, prev, seed * 10 + k))
+                    s = stage.state
+                    rows.append(_score_target(stage, ctrls(last), oracle, base, target, s, prev, seed * 10 + k))
                     prev = np.asarray(rows[-1]["u"])
                     stage.move(prev)
+                    last = direction.after_move(last, s[1:], afm.q_of(prev))
             sel = (model.info.get("noise_selection") or {}).get("selected")
             out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "targets": rows})
     return out
