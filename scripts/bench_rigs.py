@@ -10,7 +10,9 @@ counted) — and each training size in ``--sizes``:
 1. ``collect``: the method's training design on the simulated rig (a measurement log);
 2. ``train``: the residual VHGPR (eq. 3) with the method's settings;
 3. ``solve`` the targets 6, 12, 18, 24 µm in sequence on a fresh simulated stage, each from
-   the state the previous executed command left.
+   the state the previous executed command left and with the actuators' last directions of
+   motion that the commands sent give (what ``api.Operator`` passes; read by a model with a
+   reversal source, docs/controller.md "The move's context").
 
 Each chosen pose is scored with the simulator's truth from the same state: its true
 (noise-free) mean error, its true scatter (std), the oracle's scatter (the quietest pose
