@@ -153,6 +153,10 @@ class EAFM:
     check_geometry : bool
         Refuse a model whose ``geometry_hash`` differs from ``afm.stage.geometry_hash()``
         (default True). A model with no geometry hash is refused too.
+    direction : ndarray, shape (n_q,), optional
+        Each actuator's last direction of motion before the moves this EAFM predicts (+1 or -1;
+        default all +1, the zero state's), read only by a model with a reversal noise source
+        (:attr:`uses_direction`; :meth:`with_direction`).
 
     Raises
     ------
@@ -208,7 +212,7 @@ class EAFM:
             return initial(self.n_q)
         d = np.asarray(direction, dtype=float).reshape(-1)
         if d.shape != (self.n_q,) or not np.all(np.isin(d, (-1.0, 1.0))):
-            raise ValueError(f"the actuators' last directions must be {self.n_q} values of +1 or -1, got "
+            raise ConfigError(f"the actuators' last directions must be {self.n_q} values of +1 or -1, got "
                              f"{np.asarray(direction).tolist()}")
         return d
 
