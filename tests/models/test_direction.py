@@ -168,3 +168,31 @@ def test_clean_readings_select_no_reversal(afm):
         hits += bool(sel.names)
         revs += any(":rev" in nm for nm in sel.names)
     assert hits <= 2 and revs <= 2, (hits, revs)
+
+
+def test_the_api_controller_solves_with_the_direction_it_is_given(afm, reversal_model):
+    """``api.Controller.solve(direction=...)`` uses that direction's model: each direction's
+    command is at least as quiet under its own model as the other direction's command (both
+    reach the target), its stated noise is that model's at the command, and it does not turn
+    the planted actuator round."""
+    from microctl import api
+
+    stage = api.load_stage(ROOT / "configs/stage/sim_paper.yaml")
+    ctl = api.Controller(stage, reversal_model)
+    q_prev = np.full(afm.n_q, 12.0)
+    u_prev = np.linalg.lstsq(afm.K, q_prev, rcond=None)[0]
+    s = np.concatenate([[float(afm.t_of(u_prev))], q_prev])
+    target = float(afm.t_of(u_prev)) + 3.0
+    down = np.ones(afm.n_q)
+    down[REV_ACT] = -1.0
+    res = {k: ctl.solve(target, s, direction=d) for k, d in (("up", None), ("down", down))}
+    eafm = {"up": EAFM(afm, reversal_model), "down": EAFM(afm, reversal_model).with_direction(down)}
+    for k, other in (("up", "down"), ("down", "up")):
+        own = float(np.exp(eafm[k].predict(s, res[k].u).g_mean[0]))
+        alt = float(np.exp(eafm[k].predict(s, res[other].u).g_mean[0]))
+        assert abs(res[k].predicted_um - target) < 1e-6
+        assert own <= alt * 1.05, (k, own, alt)
+        np.testing.assert_allclose(res[k].noise_std_um ** 2, own, rtol=0.25)
+    # neither turns actuator 3 round (a reversal of more than 0.1 µm: about a fifth of the planted
+    # scatter's saturation step), so the two commands move it in opposite directions
+    assert res["up"].q[REV_ACT] - q_prev[REV_ACT] >= -0.1 and res["down"].q[REV_ACT] - q_prev[REV_ACT] <= 0.1
