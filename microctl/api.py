@@ -40,7 +40,7 @@ from microctl.measurement.appending import append_log_writer
 from microctl.measurement.log import Measurement, MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.direction import after_move
-from microctl.models.direction import initial as initial_direction
+from microctl.models.direction import at_commands as directions_at
 from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
 from microctl.util.signals import interrupts_deferred, raise_if_interrupted
@@ -406,8 +406,7 @@ class Operator:
             else None
         # each actuator's last direction of motion, stepped with every command sent (the same
         # convention: one move from the zero state to the backend's q before the first)
-        self.direction = after_move(initial_direction(afm.n_q), np.zeros(afm.n_q),
-                                              np.asarray(backend.state, dtype=float)[1:])
+        self.direction = directions_at(np.asarray(backend.state, dtype=float)[1:])
         if log is not None:
             self._writer, self._seq, self._time_offset = append_log_writer(log, self.stage.config.stage,
                                                                            MOVE_LOG_COLUMNS)

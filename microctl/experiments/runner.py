@@ -283,7 +283,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
         for k in range(T):
             with run.backend(cfg.seeds.absolute_stage + k) as b:
                 truth = run.truth(b)
-                last = direction.after_move(direction.initial(afm.n_q), np.zeros(afm.n_q), b.state[1:])
+                last = direction.at_commands(b.state[1:])
                 for i, u in enumerate(U):
                     q_before = b.state[1:]
                     rec.move(b, zero, trial=k, point=-1, controller="none")
@@ -358,7 +358,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                     plan: Any = None
                     # hysteresis corrections: the play states, stepped with every command sent
                     memory = afm.memory.step(None, b.state[1:]) if carries else None
-                    last = direction.after_move(direction.initial(afm.n_q), np.zeros(afm.n_q), b.state[1:])
+                    last = direction.at_commands(b.state[1:])
                     for j, target in enumerate(targets):
                         s = b.state
                         ctrl = ctrl0 if by_dir is None else by_dir(last)

@@ -18,7 +18,7 @@ import numpy as np
 
 from microctl.stage.physics import ZERO_STATE_DIRECTION, approach_direction, directions_from_steps
 
-__all__ = ["initial", "after_move", "log_directions"]
+__all__ = ["initial", "after_move", "at_commands", "log_directions"]
 
 
 def initial(n_q: int) -> np.ndarray:
@@ -39,6 +39,13 @@ def after_move(direction: np.ndarray, q_prev: np.ndarray, q: np.ndarray) -> np.n
     if d.shape != dq.shape:
         raise ValueError(f"directions have shape {d.shape}; the commands {dq.shape}")
     return approach_direction(dq, d)
+
+
+def at_commands(q: np.ndarray) -> np.ndarray:
+    """The directions of a stage found standing at the commands q (n_q,), its history unknown:
+    one move from the zero state to q (the hysteresis memory's convention), shape (n_q,)."""
+    q = np.asarray(q, dtype=float).reshape(-1)
+    return after_move(initial(q.size), np.zeros(q.size), q)
 
 
 def log_directions(q_prev: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ class ResidualData:
     direction : ndarray, shape (n, n_q), or None
         The move's context: each actuator's last direction of motion before the move (+1 or
         -1, :mod:`microctl.models.direction`), which only a reversal noise source reads; None
-        when not known (then no such source is a candidate: every row counts as +1).
+        when not known (then every row counts as +1, as if every actuator had last moved up).
     """
 
     X: np.ndarray
@@ -346,8 +346,9 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
                               [gates[j] for j in keep], max_time, warm_start=model if sparse else None)
     # every candidate added alone at its best size, with its likelihood gain: the controller's
     # least-motion rule (microctl.control.credible) weighs these alternatives by their evidence
-    pred = model.predict(data.context_inputs(afm.n_q) if model.n_context else data.X)
-    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(data.context_inputs(afm.n_q)))
+    Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
+    pred = model.predict(Xc if model.n_context else data.X)
+    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(Xc))
     coef = coef / np.asarray(cands.scale, dtype=float)  # per unit of the candidate at scale 1
     record["alternatives"] = {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
     record["n"] = int(len(data.y))
@@ -413,11 +414,11 @@ def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     else:
         first = _fit(data, afm, st, noise_features_for(afm), "physical", max_time)
     r = data.y - first.predict(data.X).f_mean
-    cands = candidate_features(afm, context=True).rescaled(data.context_inputs(afm.n_q))
+    Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
+    cands = candidate_features(afm, context=True).rescaled(Xc)
     U = data.X[:, afm.n_s:]
     mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
-    sel = select_features(r, cands.values(data.context_inputs(afm.n_q)), cands.names, tilt_inputs=(U - mu) / sd,
-                          alpha=SELECTION_ALPHA)
+    sel = select_features(r, cands.values(Xc), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
     return _Sources(st, first, idx, r, cands, sel, mu, sd)
 
 

@@ -292,6 +292,11 @@ def test_load_errors_name_the_file(tmp_path: Path, small_model: FittedVHGPR) -> 
     _rewrite_npz(good, missing, drop="f_chol")
     with pytest.raises(DataError, match=r"missing\.npz.*missing array.*'f_chol'"):
         FittedVHGPR.load(missing)
+    too_many = tmp_path / "too_many_lengthscales.npz"
+    d = small_model.n_inputs
+    _rewrite_npz(good, too_many, f_log_lengthscales=np.zeros(d + 1), g_log_lengthscales=np.zeros(d + 1))
+    with pytest.raises(DataError, match=rf"too_many_lengthscales\.npz.*{d + 1} lengthscales for {d} inputs"):
+        FittedVHGPR.load(too_many)
     bad_shape = tmp_path / "bad_shape.npz"
     _rewrite_npz(good, bad_shape, g_beta=np.zeros(3))
     with pytest.raises(DataError, match=r"bad_shape\.npz.*'g_beta' has shape"):

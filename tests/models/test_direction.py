@@ -48,6 +48,7 @@ def test_log_directions_worked_by_hand():
                     float)
     np.testing.assert_array_equal(direction.log_directions(q_prev, q), want)
     np.testing.assert_array_equal(direction.after_move([1, -1], [2, 2], [2, 3]), [1, 1])
+    np.testing.assert_array_equal(direction.at_commands([0.0, -1.0, 3.0]), [1, -1, 1])  # one move from zero
 
 
 def test_kernels_ignore_the_columns_beyond_their_lengthscales():
