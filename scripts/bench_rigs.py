@@ -86,6 +86,7 @@ from microctl.models.afm import AnalyticForwardModel  # noqa: E402
 from microctl.models import direction  # noqa: E402
 from microctl.models.eafm import EAFM  # noqa: E402
 from microctl.models.training import (  # noqa: E402
+    SELECTION_ALPHA,
     ResidualModelSettings,
     residual_dataset,
     train_residual_model,
@@ -94,6 +95,7 @@ from microctl.stage.config import StageConfig, parse_stage_config  # noqa: E402
 from microctl.stage.physics import actual_positions, ball_heights, solve_equilibrium  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import rig_audit  # noqa: E402
 import rig_families  # noqa: E402
 
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
@@ -312,13 +314,19 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
         for name in methods:
             meth = METHODS[name]
             t0 = time.perf_counter()
+            moves = training_moves(afm, meth.design, n, seed)
             with tempfile.TemporaryDirectory() as tmp:
                 log_path = Path(tmp) / "train.csv"
                 with rig.stage(seed + 10_000) as stage:
-                    run_collect(stage, training_moves(afm, meth.design, n, seed), log_path, quiet=True)
-                data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
+                    run_collect(stage, moves, log_path, quiet=True)
+                log = read_log(log_path, cfg.stage, min_rows=5)
+                data = residual_dataset(log, afm)
             model = train_residual_model(data, afm, meth.model)
             t_fit = time.perf_counter() - t0
+            with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
+                audit = rig_audit.training_evidence(stage, moves, log.t, data, model, afm.n_q)
+            audit["entry_nats"] = rig_audit.entry_evidence(
+                SELECTION_ALPHA, (model.info.get("noise_selection") or {}).get("candidates", 1))
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
             base = AFMController(afm)
             rows = []
@@ -332,7 +340,8 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                     stage.move(prev)
                     last = direction.after_move(last, s[1:], afm.q_of(prev))
             sel = (model.info.get("noise_selection") or {}).get("selected")
-            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "targets": rows})
+            out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "audit": audit,
+                                "targets": rows})
     return out
 
 
@@ -355,8 +364,7 @@ def summarise(results: list[dict], sizes, methods) -> list[dict]:
             cal = np.array([math.hypot(t["std_um"], t["err_um"]) / t["pred_std_um"] for r in runs for t in r["targets"]])
             cal_scatter = np.array([t["std_um"] / t["pred_noise_std_um"] for r in runs for t in r["targets"]])
             afm_ratio = np.array([t["afm_std_um"] / t["oracle_std_um"] for r in runs for t in r["targets"]])
-            rig_ok = [all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM
-                          for t in r["targets"]) for r in runs]
+            rig_ok = [_rig_passes(r) for r in runs]
             rig_std_ok = [all(t["std_um"] <= STD_BAR * t["oracle_std_um"] for t in r["targets"]) for r in runs]
             rig_err_ok = [all(abs(t["err_um"]) <= ERR_BAR_UM for t in r["targets"]) for r in runs]
             cal_ok = (cal >= CAL_BAR[0]) & (cal <= CAL_BAR[1])
@@ -443,7 +451,7 @@ def failing_targets(results: list[dict]) -> list[dict]:
                                         ("mean", abs(t["err_um"]) > ERR_BAR_UM)) if bad]
                 if why:
                     out.append({"family": res.get("family", "stick_slip"), "seed": res["seed"], "n": r["n"],
-                                "method": r["method"], "why": "+".join(why), **t})
+                                "method": r["method"], "why": "+".join(why), "audit": r.get("audit"), **t})
     return out
 
 
@@ -457,16 +465,34 @@ def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
         for row in summarise(sub, sizes, methods):
             tg = [t for res in sub for r in res["runs"] if r["n"] == row["n"] and r["method"] == row["method"]
                   for t in r["targets"]]
+            runs = [r for res in sub for r in res["runs"] if r["n"] == row["n"] and r["method"] == row["method"]]
             row.update(family=fam, verify_n=sum(t["verify_n"] for t in tg),
                        verify_violations=sum(t["verify_violations"] for t in tg),
-                       mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)))
+                       mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)),
+                       **_audit_summary(runs))
             table.append(row)
     return table
+
+
+def _rig_passes(run: dict) -> bool:
+    return all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM for t in run["targets"])
+
+
+def _audit_summary(runs: list[dict]) -> dict:
+    """The truth's evidence against the models at their training moves (scripts/rig_audit.py):
+    its median over the rigs, and how many failing rigs had evidence at least one source's entry
+    level (their data showed the model's error: the method's failure, not the data's)."""
+    ev = [r["audit"]["evidence_nats"] for r in runs if "audit" in r]
+    failing = [r for r in runs if "audit" in r and not _rig_passes(r)]
+    shown = sum(r["audit"]["evidence_nats"] >= r["audit"]["entry_nats"] for r in failing)
+    return {"evidence_median": _q(ev, 50), "fail_shown": f"{shown} of {len(failing)}"}
 
 
 FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
     ("verify_violations", "oracle beaten by a random pose", None),
     ("mc_std_dev_max", "max abs(MC std / exact std - 1)", "{:.3f}"),
+    ("evidence_median", "evidence against the model at the training moves, median (nats)", "{:.1f}"),
+    ("fail_shown", "failing rigs whose training data show the error", "{}"),
 )
 
 
@@ -480,7 +506,11 @@ def _fmt_fail(f: dict) -> str:
             f"err {f['err_um']:+.3f} µm, std {f['std_um']:.3f} vs oracle {f['oracle_std_um']:.3f} "
             f"({f['std_um'] / f['oracle_std_um']:.2f}x), AFM {f['afm_std_um']:.3f}; predicted std {f['pred_std_um']:.3f} "
             f"(noise {f['pred_noise_std_um']:.3f}, f {f['f_std_um']:.3f}); model's noise at the oracle pose "
-            f"{f['pred_noise_std_oracle_um']:.3f}; q_prev {f['q_prev_um']} q {f['q_um']} oracle q {f['oracle_q_um']}")
+            f"{f['pred_noise_std_oracle_um']:.3f}; q_prev {f['q_prev_um']} q {f['q_um']} oracle q {f['oracle_q_um']}"
+            + ("" if not f.get("audit") else
+               f"; evidence against the model at the training moves {f['audit']['evidence_nats']:.1f} nats "
+               f"(of it the mean {f['audit']['mean_part_nats']:.1f}; one source enters at "
+               f"{f['audit']['entry_nats']:.1f})"))
 
 
 def print_families(table: list[dict], results: list[dict]) -> None:
@@ -490,7 +520,9 @@ def print_families(table: list[dict], results: list[dict]) -> None:
                                          f"{t['ratio_median']:.2f} p90 {t['ratio_p90']:.2f} max {t['ratio_max']:.2f}, "
                                          f"|err| med {t['err_median_um']:.3f} max {t['err_max_um']:.3f}, calib "
                                          f"{t['cal_pass']}/{t['cal_n']}, oracle beaten {t['verify_violations']}/"
-                                         f"{t['verify_n']}" for t in table).replace(" ; ", "\n  "))
+                                         f"{t['verify_n']}, evidence med {t['evidence_median']:.1f} nats, failing "
+                                         f"rigs whose data show the error {t['fail_shown']}"
+                                         for t in table).replace(" ; ", "\n  "))
     fails = failing_targets(results)
     print(f"\nfailing rig-targets ({len(fails)}):")
     for f in fails:
