@@ -337,9 +337,11 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
     with Progress(len(ctrls) * T * J, "incremental movement", quiet=run.quiet) as pr:
         for name, ctrl0 in ctrls.items():
             spec = registry.entry(name)
-            # a model that reads the actuators' last directions: a move-by-move controller per direction
-            by_dir = None if spec.needs_truth or spec.sequence or not eafm.uses_direction else \
-                ByDirection(eafm, lambda e, n=name: registry.entry(n).build(run, e))
+            # a model that reads the actuators' last directions: a controller per direction, for the
+            # move-by-move ones and a re-planning sequence controller (each re-plan from the directions
+            # the commands sent give, so every executed move is planned with its own)
+            by_dir = None if spec.needs_truth or (spec.sequence and not spec.replan) or not eafm.uses_direction \
+                else ByDirection(eafm, lambda e, n=name: registry.entry(n).build(run, e))
             r = {key: np.full((T, J), np.nan) for key in
                  ("reached_um", "predicted_um", "predicted_std_um", "true_mean_um", "true_std_um", "solve_time_s",
                   "prob_quieter_than_afm", "credibly_quieter_than_afm")}

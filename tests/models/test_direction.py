@@ -197,3 +197,44 @@ def test_the_api_controller_solves_with_the_direction_it_is_given(afm, reversal_
     # neither turns actuator 3 round (a reversal of more than 0.1 µm: about a fifth of the planted
     # scatter's saturation step), so the two commands move it in opposite directions
     assert res["up"].q[REV_ACT] - q_prev[REV_ACT] >= -0.1 and res["down"].q[REV_ACT] - q_prev[REV_ACT] <= 0.1
+
+
+def test_the_runner_replans_a_sequence_from_the_directions_of_the_commands_sent(afm, reversal_model, tmp_path,
+                                                                                 monkeypatch):
+    """The experiments' re-planning sequence controller (``eafm_sequence``), on a model that reads
+    the directions: every re-plan is made with each actuator's last direction of motion before
+    that move, recomputed here from the incremental log's commands by the rule written in this
+    file (sign of the step, a hold keeps the direction, the zero state counts as up); a
+    down-and-up target list turns actuators round, so the directions change along it."""
+    from dataclasses import replace
+
+    from microctl.experiments import runner
+    from microctl.experiments.config import load_experiment_config
+    from microctl.measurement.log import read_log
+
+    cfg = load_experiment_config(ROOT / "configs/experiments/paper.yaml")
+    cfg = replace(cfg, controllers=("afm", "eafm_sequence"),
+                  incremental=replace(cfg.incremental, targets_um=(9.0, 4.0, 8.0), trials=1))
+    run = runner._Run(cfg=cfg, out=tmp_path, stage_config=cfg.stage_config, factory=runner.default_backend_factory,
+                      quiet=True, afm=afm)
+    seen = []
+    build = ByDirection.__call__
+
+    def spy(self, direction=None):  # the runner's per-controller factory carries the controller's name
+        if (self._make.__defaults__ or (None,))[0] == "eafm_sequence":
+            seen.append(np.ones(afm.n_q) if direction is None else np.asarray(direction, dtype=float).copy())
+        return build(self, direction)
+
+    monkeypatch.setattr(ByDirection, "__call__", spy)
+    runner._incremental(run, EAFM(afm, reversal_model))
+    log = read_log(tmp_path / runner.LOG_NAMES["incremental"], cfg.stage_config.stage)
+    rows = [k for k, c in enumerate(log.extra["controller"]) if c == "eafm_sequence"]
+    Q = np.asarray(log.q)[rows]  # the zero state, then the three targets' commands
+    last, hand = np.ones(afm.n_q), []
+    for k in range(1, len(Q)):
+        hand.append(last.copy())
+        dq = Q[k] - Q[k - 1]
+        last = np.where(np.abs(dq) > 1e-6, np.sign(dq), last)
+    assert len(seen) == 3
+    np.testing.assert_array_equal(np.array(seen), np.array(hand))
+    assert np.any(np.array(hand) < 0)  # the list turned some actuator round
