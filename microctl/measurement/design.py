@@ -13,7 +13,9 @@ still, another at its range limit), so the mean correction must be learned there
 
     - *space-filling*: the next point of a scrambled Sobol sequence in the polytope (the
       paper's IV-A design);
-    - *hold*: one or two actuators held still (dq_i = 0 exactly), the pose moved inside
+    - *hold*: one or two actuators held still (dq_i = 0 to round-off: the pose is a command u,
+      so K_i u keeps its value to floating-point round-off, far inside the hold tolerance
+      ``microctl.stage.physics.STILL_TOL_UM``), the pose moved inside
       the section of the polytope where they stay, by a step whose length is a uniform
       fraction of the way to a random point of that section, so step sizes spread from 0 to
       the full range whatever the pose;
