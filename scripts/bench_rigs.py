@@ -17,7 +17,11 @@ counted) — and each training size in ``--sizes``:
 Each chosen pose is scored with the simulator's truth from the same state: its true
 (noise-free) mean error, its true scatter (std), the oracle's scatter (the quietest pose
 that truly reaches the target: eq. 4 solved on the true mean and variance) and the AFM
-baseline's; and the predicted std is compared with the true one (calibration).
+baseline's; and the predicted std is compared with the true one (calibration). Each trained
+model is also audited at its training moves (scripts/rig_audit.py): the evidence the readings
+carry against it (the truth's expected log-likelihood ratio over the model's predictive
+distribution), against what one noise source needs to enter the selection, so that a failing
+rig whose data could not show the model's error is told from one whose data did.
 
 Methods (columns):
 
