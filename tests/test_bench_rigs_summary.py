@@ -7,19 +7,11 @@ sqrt(std^2 + err^2); the scatter calibration compares the true std with the pred
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
+from script_loader import load_script
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("_script_bench_rigs_summary", ROOT / "scripts" / "bench_rigs.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench_rigs", "bench_rigs_summary")
 
 
 def _target(std, err, pred, noise, oracle=0.1):

@@ -7,24 +7,16 @@ quantile for the entry level.
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from script_loader import load_script
 
 
 def _audit():
-    spec = importlib.util.spec_from_file_location("_script_rig_audit", ROOT / "scripts" / "rig_audit.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("rig_audit")
 
 
 class _Stage:
