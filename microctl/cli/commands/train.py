@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
 from microctl.errors import ConfigError, DataError
 from microctl.measurement.log import read_log
 from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
+from microctl.models.floor_check import interpolated_floor
 from microctl.models.outlier_screen import describe_screen
 from microctl.models.training import (
     GP_FORMS,
@@ -94,6 +96,10 @@ def _run(args: argparse.Namespace) -> int:
         model = train_residual_model(data, afm, settings)
     except DataError as exc:  # e.g. "y is constant": say which file
         raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
+    check = interpolated_floor(model, data.context_inputs(afm.n_q) if model.n_context else data.X)
+    if check is not None and check.degenerate:  # kept with the model: api and `solve` users can read it
+        model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
+                                                                   "floor_std_um": check.floor_std_um}})
     model.save(args.out)
     # the result on stdout (progress and notes go to stderr): shown also with --quiet
     form = "" if model.posterior_form == "exact" else f" (sparse, {model.X.shape[0]} inducing points)"
@@ -103,6 +109,8 @@ def _run(args: argparse.Namespace) -> int:
     screened = describe_screen(model.info.get("noise_selection", {}).get("screened"), log.seq)
     if screened:
         print(f"train: {screened}")
+    if check is not None and check.degenerate:
+        print(f"train: warning: {check.describe()}")
     sel = model.info.get("se_selection")
     if sel is not None:
         print("train: mean correction: affine trend in u"

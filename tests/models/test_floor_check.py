@@ -1,0 +1,84 @@
+"""microctl.models.floor_check: a noise floor that the mean correction passes through is flagged.
+
+The degenerate fit is taken from a rig the package was not shaped on: scripts/rig_families.py's
+``stick_slip`` rig 1 with the covering design's 125 moves and the default model (found by the
+rig bench's audit, scripts/rig_audit.py: the trained floor std is below 1e-4 µm while that rig's
+gauge scatters by tens of nm). Whether f passes through a flagged reading is checked directly,
+not through the hat value: its residual y - f is below a thousandth of the rig's gauge noise.
+The clean rig 0 (gauge noise only, 200 moves), where every move is floor-only, is not flagged.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from microctl.backends.collect import run_collect
+from microctl.measurement.design import training_moves
+from microctl.measurement.log import read_log
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.floor_check import HAT_LIMIT, FloorCheck, interpolated_floor
+from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _families():
+    if str(ROOT / "scripts") not in sys.path:
+        sys.path.insert(0, str(ROOT / "scripts"))
+    import rig_families
+
+    return rig_families
+
+
+def _trained(family: str, seed: int, n: int):
+    rig = _families().make_family_rig(family, seed)
+    afm = AnalyticForwardModel(rig.config.stage)
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "train.csv"
+        with rig.stage(seed + 10_000) as stage:
+            run_collect(stage, training_moves(afm, "covering", n, seed), log, quiet=True)
+        data = residual_dataset(read_log(log, rig.config.stage, min_rows=5), afm)
+    model = train_residual_model(data, afm, ResidualModelSettings())
+    X = data.context_inputs(afm.n_q) if model.n_context else data.X
+    return rig, model, X, data.y
+
+
+def test_a_floor_the_mean_passes_through_is_flagged():
+    rig, model, X, y = _trained("stick_slip", 1, 125)
+    check = interpolated_floor(model, X)
+    gauge = rig.config.backend.simulated.gauge_noise_std_um
+    assert check.degenerate and check.floor_std_um < 0.01 * gauge, check
+    assert all(h > HAT_LIMIT for h in check.hat)
+    # f passes through each flagged reading: the residual is far below the gauge's scatter
+    f = model.predict(X[list(check.rows)]).f_mean
+    assert np.all(np.abs(y[list(check.rows)] - f) < 1e-3 * gauge), (y[list(check.rows)] - f, gauge)
+    assert "not an estimate" in check.describe()
+
+
+def test_a_sound_floor_is_not_flagged():
+    rig, model, X, y = _trained("clean", 0, 200)
+    check = interpolated_floor(model, X)
+    gauge = rig.config.backend.simulated.gauge_noise_std_um
+    assert not check.degenerate and check.floor_rows == len(y)
+    # the floor is the gauge's, within the chi-square spread of 200 readings (and f's share)
+    assert check.floor_std_um == pytest.approx(gauge, rel=0.25)
+
+
+def test_train_warns_and_keeps_the_check_with_the_model(tmp_path, capsys, monkeypatch, planted_log, table1_path):
+    """``microctl train`` prints the warning with its result and stores the flagged rows in the
+    model's info (a degenerate check stands in for the fit's)."""
+    import microctl.cli.commands.train as train_cmd
+    from microctl.cli import main
+    from microctl.gp.fitted import FittedVHGPR
+
+    monkeypatch.setattr(train_cmd, "interpolated_floor", lambda model, X: FloorCheck((3, 7), (0.99, 1.0), 1e-5, 4))
+    out = tmp_path / "m.npz"
+    rc = main(["train", str(planted_log), "--config", str(table1_path), "-o", str(out), "--restarts", "1", "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "train: warning: the mean correction passes through 2 of the 4" in cap.out, cap.out
+    assert FittedVHGPR.load(out).info["floor_check"]["rows"] == [3, 7]
