@@ -17,7 +17,7 @@ posterior variance there is ``[K (K + R)^-1 R]_ii = H_ii R_ii``, so
 
 (the VHGPR's effective noise, Lázaro-Gredilla & Titsias 2011, with mu, Sigma q(g)'s mean and
 variance at the training inputs). A reading the fit treats as independent scatter has
-``H_ii`` well below 1/2 (each reading is one of many that inform f there); ``H_ii`` near 1
+``H_ii`` well below 1 (each reading is one of many that inform f there); ``H_ii`` near 1
 means f passes through it. :func:`interpolated_floor` reports the moves whose predicted noise
 is within a factor :data:`FLOOR_FACTOR` of the floor and whose hat value exceeds
 :data:`HAT_LIMIT`.
@@ -31,8 +31,10 @@ import numpy as np
 
 __all__ = ["FloorCheck", "interpolated_floor", "HAT_LIMIT", "FLOOR_FACTOR"]
 
-#: A training move whose reading f follows by more than this share (hat value) is interpolated.
-HAT_LIMIT = 0.5
+#: A training move whose reading f follows by more than this share (hat value) is interpolated:
+#: most of the reading is then in f, and the reading hardly informs the floor. (At 1/2, fits with a
+#: sound floor are flagged too: an isolated move can carry that much of f.)
+HAT_LIMIT = 0.8
 #: A move counts as floor-only where the predicted noise variance is within this factor of c_0.
 FLOOR_FACTOR = 2.0
 
