@@ -4,7 +4,7 @@ The noise floor c_0 of g's prior mean (``noise_prior`` eq. 1) is identified by t
 moves where no selected source is active. When only a few such moves exist, the VHGPR bound
 has a degenerate direction: the mean correction f passes through their readings while the
 floor shrinks towards zero, and the bound grows without limit (-1/2 log c_0 per reading passed
-through); the fit stops at the optimiser's box bound of mu0 (:data:`microctl.gp.bound.BOUNDS`).
+through), until the optimiser stops near the box bound of mu0 (:data:`microctl.gp.bound.BOUNDS`).
 The floor is then not an estimate, and the repeatability the model predicts at quiet moves
 (the poses the controller seeks) is far below what the stage does.
 

@@ -97,7 +97,7 @@ def _run(args: argparse.Namespace) -> int:
     except DataError as exc:  # e.g. "y is constant": say which file
         raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
     check = interpolated_floor(model, data.context_inputs(afm.n_q) if model.n_context else data.X)
-    if check is not None and check.degenerate:  # kept with the model: api and `solve` users can read it
+    if check is not None and check.degenerate:  # kept in the model's info, beside the selection
         model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
                                                                    "floor_std_um": check.floor_std_um}})
     model.save(args.out)
