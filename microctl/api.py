@@ -25,6 +25,7 @@ import json
 import math
 import re
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -227,6 +228,7 @@ def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | N
     FittedVHGPR
         Bound to the stage geometry; pass it (or the file) to :class:`Controller`.
     """
+    from microctl.models.floor_check import with_floor_check
     from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
 
     if not isinstance(log, MeasurementLog):
@@ -234,7 +236,11 @@ def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | N
     elif len(log) < 5:
         raise ConfigError(f"{log.path}: {len(log)} moves, at least 5 needed to train")
     settings = ResidualModelSettings(restarts=restarts, seed=seed, noise_model=noise_model)
-    model = train_residual_model(residual_dataset(log, stage.afm), stage.afm, settings, max_time=max_time)
+    data = residual_dataset(log, stage.afm)
+    model, check = with_floor_check(train_residual_model(data, stage.afm, settings, max_time=max_time), data,
+                                    stage.afm.n_q)
+    if check is not None and check.degenerate:  # as `microctl train` prints it
+        warnings.warn(f"train: {check.describe()}", RuntimeWarning, stacklevel=2)
     if out is not None:
         model.save(out)
     return model

@@ -25,11 +25,11 @@ is within a factor :data:`FLOOR_FACTOR` of the floor and whose hat value exceeds
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["FloorCheck", "interpolated_floor", "HAT_LIMIT", "FLOOR_FACTOR"]
+__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR"]
 
 #: A training move whose reading f follows by more than this share (hat value) is interpolated:
 #: most of the reading is then in f, and the reading hardly informs the floor. (At 1/2, fits with a
@@ -101,3 +101,27 @@ def interpolated_floor(model, X: np.ndarray) -> FloorCheck | None:
     rows = np.flatnonzero(floor_only & (hat > HAT_LIMIT))
     return FloorCheck(tuple(int(i) for i in rows), tuple(float(h) for h in hat[rows]),
                       float(np.sqrt(floor_var)), int(np.sum(floor_only)))
+
+
+def with_floor_check(model, data, n_q: int):
+    """``model`` with a degenerate :func:`interpolated_floor` result kept in its
+    ``info["floor_check"]`` (rows, hat values, floor std), and the check.
+
+    Parameters
+    ----------
+    model : FittedVHGPR
+    data : ResidualData
+        The data it was trained on.
+    n_q : int
+        Actuators (the context columns of a model that reads the move's context).
+
+    Returns
+    -------
+    model : FittedVHGPR
+    check : FloorCheck or None
+    """
+    check = interpolated_floor(model, data.context_inputs(n_q) if getattr(model, "n_context", 0) else data.X)
+    if check is not None and check.degenerate:
+        model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
+                                                                   "floor_std_um": check.floor_std_um}})
+    return model, check

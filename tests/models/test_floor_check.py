@@ -72,13 +72,24 @@ def test_a_sound_floor_is_not_flagged():
 def test_train_warns_and_keeps_the_check_with_the_model(tmp_path, capsys, monkeypatch, planted_log, table1_path):
     """``microctl train`` prints the warning with its result and stores the flagged rows in the
     model's info (a degenerate check stands in for the fit's)."""
-    import microctl.cli.commands.train as train_cmd
+    import microctl.models.floor_check as floor_check
     from microctl.cli import main
     from microctl.gp.fitted import FittedVHGPR
 
-    monkeypatch.setattr(train_cmd, "interpolated_floor", lambda model, X: FloorCheck((3, 7), (0.99, 1.0), 1e-5, 4))
+    monkeypatch.setattr(floor_check, "interpolated_floor", lambda model, X: FloorCheck((3, 7), (0.99, 1.0), 1e-5, 4))
     out = tmp_path / "m.npz"
     rc = main(["train", str(planted_log), "--config", str(table1_path), "-o", str(out), "--restarts", "1", "--quiet"])
     cap = capsys.readouterr()
     assert rc == 0 and "train: warning: the mean correction passes through 2 of the 4" in cap.out, cap.out
     assert FittedVHGPR.load(out).info["floor_check"]["rows"] == [3, 7]
+
+
+def test_api_train_warns_and_keeps_the_check(monkeypatch, planted_log, table1_path):
+    """``api.train`` issues the same warning as a RuntimeWarning and keeps the rows in the info."""
+    import microctl.models.floor_check as floor_check
+    from microctl import api
+
+    monkeypatch.setattr(floor_check, "interpolated_floor", lambda model, X: FloorCheck((5,), (0.95,), 2e-5, 3))
+    with pytest.warns(RuntimeWarning, match="passes through 1 of the 3"):
+        model = api.train(planted_log, api.load_stage(table1_path), restarts=1)
+    assert model.info["floor_check"]["rows"] == [5]

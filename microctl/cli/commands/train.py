@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
 from microctl.errors import ConfigError, DataError
 from microctl.measurement.log import read_log
 from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
-from microctl.models.floor_check import interpolated_floor
+from microctl.models.floor_check import with_floor_check
 from microctl.models.outlier_screen import describe_screen
 from microctl.models.training import (
     GP_FORMS,
@@ -96,10 +95,7 @@ def _run(args: argparse.Namespace) -> int:
         model = train_residual_model(data, afm, settings)
     except DataError as exc:  # e.g. "y is constant": say which file
         raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
-    check = interpolated_floor(model, data.context_inputs(afm.n_q) if model.n_context else data.X)
-    if check is not None and check.degenerate:  # kept in the model's info, beside the selection
-        model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
-                                                                   "floor_std_um": check.floor_std_um}})
+    model, check = with_floor_check(model, data, afm.n_q)  # a degenerate floor is kept in the model's info
     model.save(args.out)
     # the result on stdout (progress and notes go to stderr): shown also with --quiet
     form = "" if model.posterior_form == "exact" else f" (sparse, {model.X.shape[0]} inducing points)"
