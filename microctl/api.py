@@ -237,8 +237,7 @@ def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | N
         raise ConfigError(f"{log.path}: {len(log)} moves, at least 5 needed to train")
     settings = ResidualModelSettings(restarts=restarts, seed=seed, noise_model=noise_model)
     data = residual_dataset(log, stage.afm)
-    model, check = with_floor_check(train_residual_model(data, stage.afm, settings, max_time=max_time), data,
-                                    stage.afm.n_q)
+    model, check = with_floor_check(train_residual_model(data, stage.afm, settings, max_time=max_time), data)
     if check is not None and check.degenerate:  # as `microctl train` prints it
         warnings.warn(f"train: {check.describe()}", RuntimeWarning, stacklevel=2)
     if out is not None:

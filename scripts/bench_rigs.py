@@ -328,7 +328,7 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
             model = train_residual_model(data, afm, meth.model)
             t_fit = time.perf_counter() - t0
             with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
-                audit = rig_audit.training_evidence(stage, moves, log.t, data, model, afm.n_q)
+                audit = rig_audit.training_evidence(stage, moves, log.t, data, model)
             audit["entry_nats"] = rig_audit.entry_evidence(
                 SELECTION_ALPHA, (model.info.get("noise_selection") or {}).get("candidates", 1))
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
@@ -485,7 +485,7 @@ def _rig_passes(run: dict) -> bool:
 def _audit_summary(runs: list[dict]) -> dict:
     """The truth's evidence against the models at their training moves (scripts/rig_audit.py):
     its median over the rigs, and how many failing rigs had evidence at least one source's entry
-    level (their data showed the model's error: the method's failure, not the data's)."""
+    level (below it, their data could not be expected to show the model's error)."""
     ev = [r["audit"]["evidence_nats"] for r in runs if "audit" in r]
     failing = [r for r in runs if "audit" in r and not _rig_passes(r)]
     shown = sum(r["audit"]["evidence_nats"] >= r["audit"]["entry_nats"] for r in failing)

@@ -16,7 +16,9 @@ is how strongly the readings could reject the model in expectation. It is compar
 evidence one candidate source must bring to enter the noise selection at the selection's level
 with a Bonferroni correction over the candidates (a likelihood-ratio statistic of one parameter:
 chi2(1) / 2 at alpha / m): below it the data cannot be expected to show the model's error
-to any selection of this size; above it they can, and a failure there is the method's.
+to any selection of this size. Above it they show that a better model of these data exists,
+which does not make a failure the method's: the sum counts the model's errors at every training
+move, not only those that decide the controller's choice.
 
 ``training_evidence`` replays the training moves on a fresh copy of the rig's stage with the
 collection's seed (the stage is deterministic given its seed, so the replay passes through the
@@ -40,7 +42,7 @@ def entry_evidence(alpha: float, candidates: int) -> float:
     return 0.5 * float(stats.chi2.isf(alpha / max(candidates, 1), 1))
 
 
-def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model, n_q: int) -> dict:
+def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model) -> dict:
     """The truth's expected evidence against ``model`` at the training moves (module docstring).
 
     Parameters
@@ -56,8 +58,6 @@ def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model, n
         The training data built from that log.
     model : FittedVHGPR
         The trained residual model.
-    n_q : int
-        Actuators (the context columns of a model that reads the move's context).
 
     Returns
     -------
@@ -73,8 +73,7 @@ def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model, n
         var_t.append(float(stage.true_var(s, u)))
         t_re.append(stage.move(u).t_um)
     m, v = np.array(mean_t), np.array(var_t)
-    X = data.context_inputs(n_q) if getattr(model, "n_context", 0) else data.X
-    p = model.predict(X)
+    p = model.predict(data.inputs_for(model))
     V = p.f_var + np.exp(p.g_mean + 0.5 * p.g_var)
     dm = (m - (np.asarray(t_um) - data.y)) - p.f_mean  # true mean of y = t - t_AFM, less f
     kl = 0.5 * (np.log(V / v) + (v + dm * dm) / V - 1.0)

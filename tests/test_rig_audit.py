@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from script_loader import load_script
 
+from microctl.models.training import ResidualData
+
 
 def _audit():
     return load_script("rig_audit")
@@ -64,22 +66,22 @@ def test_evidence_is_the_summed_gaussian_kl_and_zero_for_the_truth():
     moves = np.array([[0.5], [1.5], [-1.0], [2.0]])
     t, m, v = _logged(moves, 3)
     t_afm = 1.9 * moves[:, 0]  # a wrong AFM: y = t - t_afm
-    data = SimpleNamespace(X=np.zeros((4, 3)), y=t - t_afm)
+    data = ResidualData(X=np.zeros((4, 3)), y=t - t_afm, x_names=("t_prev", "q_prev", "u"))
     # the truth as the model: f = m - t_afm exactly, no f variance, noise exp(g) = v exactly
     exact = _Model(m - t_afm, np.zeros(4), np.log(v), np.zeros(4))
-    out = audit.training_evidence(_Stage(3), moves, t, data, exact, 1)
+    out = audit.training_evidence(_Stage(3), moves, t, data, exact)
     assert out["evidence_nats"] == pytest.approx(0.0, abs=1e-12)
     assert out["replay_max_dev_um"] == 0.0  # the same seed: the replay meets the logged readings
     # a model off in the mean by 0.1 µm and in the variance by a factor 2 at every move:
     # each move adds 1/2 [log 2 + (v + 0.01) / (2 v) - 1]
     off = _Model(m - t_afm + 0.1, np.zeros(4), np.log(2 * v), np.zeros(4))
-    out = audit.training_evidence(_Stage(3), moves, t, data, off, 1)
+    out = audit.training_evidence(_Stage(3), moves, t, data, off)
     hand = sum(0.5 * (math.log(2.0) + (vi + 0.01) / (2 * vi) - 1.0) for vi in v)
     assert out["evidence_nats"] == pytest.approx(hand, rel=1e-12)
     assert out["mean_part_nats"] == pytest.approx(sum(0.5 * 0.01 / (2 * vi) for vi in v), rel=1e-12)
     # f's variance and g's variance enter the predictive variance: F + exp(g_mean + g_var / 2)
     wide = _Model(m - t_afm, np.full(4, 0.02), np.log(v) - 0.5, np.ones(4))
-    out = audit.training_evidence(_Stage(3), moves, t, data, wide, 1)
+    out = audit.training_evidence(_Stage(3), moves, t, data, wide)
     hand = sum(0.5 * (math.log((0.02 + vi) / vi) + vi / (0.02 + vi) - 1.0) for vi in v)
     assert out["evidence_nats"] == pytest.approx(hand, rel=1e-12)
 
@@ -88,8 +90,8 @@ def test_a_replay_with_another_seed_is_reported():
     audit = _audit()
     moves = np.array([[0.5], [1.5]])
     t, m, v = _logged(moves, 3)
-    data = SimpleNamespace(X=np.zeros((2, 3)), y=t)
-    out = audit.training_evidence(_Stage(4), moves, t, data, _Model(m, np.zeros(2), np.log(v), np.zeros(2)), 1)
+    data = ResidualData(X=np.zeros((2, 3)), y=t, x_names=("t_prev", "q_prev", "u"))
+    out = audit.training_evidence(_Stage(4), moves, t, data, _Model(m, np.zeros(2), np.log(v), np.zeros(2)))
     assert out["replay_max_dev_um"] > 1e-3
 
 

@@ -103,7 +103,7 @@ def interpolated_floor(model, X: np.ndarray) -> FloorCheck | None:
                       float(np.sqrt(floor_var)), int(np.sum(floor_only)))
 
 
-def with_floor_check(model, data, n_q: int):
+def with_floor_check(model, data):
     """``model`` with a degenerate :func:`interpolated_floor` result kept in its
     ``info["floor_check"]`` (rows, hat values, floor std), and the check.
 
@@ -112,15 +112,13 @@ def with_floor_check(model, data, n_q: int):
     model : FittedVHGPR
     data : ResidualData
         The data it was trained on.
-    n_q : int
-        Actuators (the context columns of a model that reads the move's context).
 
     Returns
     -------
     model : FittedVHGPR
     check : FloorCheck or None
     """
-    check = interpolated_floor(model, data.context_inputs(n_q) if getattr(model, "n_context", 0) else data.X)
+    check = interpolated_floor(model, data.inputs_for(model))
     if check is not None and check.degenerate:
         model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
                                                                    "floor_std_um": check.floor_std_um}})

@@ -60,6 +60,12 @@ class ResidualData:
         c = np.ones((self.X.shape[0], n_q)) if self.direction is None else self.direction
         return np.hstack([self.X, c])
 
+    def inputs_for(self, model) -> np.ndarray:
+        """The rows as ``model`` reads them: :meth:`context_inputs` for a model with context columns
+        (``model.n_context``), else X."""
+        n = int(getattr(model, "n_context", 0) or 0)
+        return self.context_inputs(n) if n else self.X
+
     def rows(self, idx) -> "ResidualData":
         """The rows ``idx`` (indices or a mask), in that order."""
         return ResidualData(X=self.X[idx], y=self.y[idx], x_names=self.x_names,

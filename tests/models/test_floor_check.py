@@ -44,8 +44,7 @@ def _trained(family: str, seed: int, n: int):
             run_collect(stage, training_moves(afm, "covering", n, seed), log, quiet=True)
         data = residual_dataset(read_log(log, rig.config.stage, min_rows=5), afm)
     model = train_residual_model(data, afm, ResidualModelSettings())
-    X = data.context_inputs(afm.n_q) if model.n_context else data.X
-    return rig, model, X, data.y
+    return rig, model, data.inputs_for(model), data.y
 
 
 def test_a_floor_the_mean_passes_through_is_flagged():

@@ -95,7 +95,7 @@ def _run(args: argparse.Namespace) -> int:
         model = train_residual_model(data, afm, settings)
     except DataError as exc:  # e.g. "y is constant": say which file
         raise DataError(f"{args.log}: the AFM residuals of its {len(data.y)} rows: {exc}") from None
-    model, check = with_floor_check(model, data, afm.n_q)  # a degenerate floor is kept in the model's info
+    model, check = with_floor_check(model, data)  # a degenerate floor is kept in the model's info
     model.save(args.out)
     # the result on stdout (progress and notes go to stderr): shown also with --quiet
     form = "" if model.posterior_form == "exact" else f" (sparse, {model.X.shape[0]} inducing points)"
