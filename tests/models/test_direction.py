@@ -238,3 +238,16 @@ def test_the_runner_replans_a_sequence_from_the_directions_of_the_commands_sent(
     assert len(seen) == 3
     np.testing.assert_array_equal(np.array(seen), np.array(hand))
     assert np.any(np.array(hand) < 0)  # the list turned some actuator round
+
+
+def test_a_malformed_direction_is_a_config_error_naming_what_is_valid(afm, reversal_model):
+    """A direction of the wrong length or with a value other than +1/-1 is refused with one line
+    that says what is valid; ConfigError is a ValueError."""
+    from microctl.errors import ConfigError
+
+    eafm = EAFM(afm, reversal_model)
+    for bad in ([1.0, 1.0, 1.0], [1.0, 0.0, 1.0, -1.0], [1.0, 2.0, 1.0, 1.0]):
+        with pytest.raises(ConfigError, match=r"must be 4 values of \+1 or -1, got"):
+            eafm.with_direction(np.array(bad))
+    with pytest.raises(ValueError, match=r"values of \+1 or -1"):
+        EAFM(afm, reversal_model, direction=np.array([1.0, -1.0]))
