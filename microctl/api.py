@@ -238,7 +238,7 @@ def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | N
     settings = ResidualModelSettings(restarts=restarts, seed=seed, noise_model=noise_model)
     data = residual_dataset(log, stage.afm)
     model, check = with_floor_check(train_residual_model(data, stage.afm, settings, max_time=max_time), data)
-    if check is not None and check.degenerate:  # as `microctl train` prints it
+    if check is not None:  # degenerate: as `microctl train` prints it
         warnings.warn(f"train: {check.describe()}", RuntimeWarning, stacklevel=2)
     if out is not None:
         model.save(out)

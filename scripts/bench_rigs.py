@@ -467,9 +467,8 @@ def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
         if not sub:
             continue
         for row in summarise(sub, sizes, methods):
-            tg = [t for res in sub for r in res["runs"] if r["n"] == row["n"] and r["method"] == row["method"]
-                  for t in r["targets"]]
             runs = [r for res in sub for r in res["runs"] if r["n"] == row["n"] and r["method"] == row["method"]]
+            tg = [t for r in runs for t in r["targets"]]
             row.update(family=fam, verify_n=sum(t["verify_n"] for t in tg),
                        verify_violations=sum(t["verify_violations"] for t in tg),
                        mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)),

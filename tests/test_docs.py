@@ -23,11 +23,7 @@ from script_loader import load_script
 ROOT = Path(__file__).resolve().parents[1]
 GENERATED = ROOT / "docs" / "generated"
 
-
-_load_script = load_script
-
-
-reproduce = _load_script("reproduce")
+reproduce = load_script("reproduce")
 
 
 def tables(text: str) -> dict[str, list[list[str]]]:
@@ -123,7 +119,7 @@ def test_paper_scale_offsets_match_the_code(tmp_path_factory):
 
 
 def test_bench_rigs_page_matches_the_code():
-    bench = _load_script("bench_rigs")
+    bench = load_script("bench_rigs")
     text = _page("bench_rigs.md")
     got = tables(text)
     assert got["seed_sets"][0] == bench.seed_set_columns()

@@ -105,7 +105,7 @@ def interpolated_floor(model, X: np.ndarray) -> FloorCheck | None:
 
 def with_floor_check(model, data):
     """``model`` with a degenerate :func:`interpolated_floor` result kept in its
-    ``info["floor_check"]`` (rows, hat values, floor std), and the check.
+    ``info["floor_check"]`` (rows, hat values, floor std), and that result.
 
     Parameters
     ----------
@@ -117,9 +117,11 @@ def with_floor_check(model, data):
     -------
     model : FittedVHGPR
     check : FloorCheck or None
+        The check when it is degenerate, else None (nothing to report).
     """
     check = interpolated_floor(model, data.inputs_for(model))
-    if check is not None and check.degenerate:
-        model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
-                                                                   "floor_std_um": check.floor_std_um}})
+    if check is None or not check.degenerate:
+        return model, None
+    model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
+                                                               "floor_std_um": check.floor_std_um}})
     return model, check

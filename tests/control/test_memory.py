@@ -188,14 +188,12 @@ def test_trained_controller_with_the_memory_reaches_the_floor():
     corrections has a true RMS error below half of the one without, and within 0.02 µm of the same
     rig without any loop (the floor: stick-slip and the GP's accuracy). The bench measures the same
     over ten rigs."""
-    import importlib.util
     from pathlib import Path
     import tempfile
 
-    root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("bench_memory", root / "scripts" / "bench_memory.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from script_loader import load_script
+
+    bench = load_script("bench_memory")
     from microctl.testing.plant import simulate
 
     base = api.load_stage("sim_paper")

@@ -105,7 +105,7 @@ def _run(args: argparse.Namespace) -> int:
     screened = describe_screen(model.info.get("noise_selection", {}).get("screened"), log.seq)
     if screened:
         print(f"train: {screened}")
-    if check is not None and check.degenerate:
+    if check is not None:  # degenerate
         print(f"train: warning: {check.describe()}")
     sel = model.info.get("se_selection")
     if sel is not None:
