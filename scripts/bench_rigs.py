@@ -89,6 +89,7 @@ from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
 from microctl.models import direction  # noqa: E402
 from microctl.models.eafm import EAFM  # noqa: E402
+from microctl.models.floor_check import with_floor_check  # noqa: E402
 from microctl.models.training import (  # noqa: E402
     SELECTION_ALPHA,
     ResidualModelSettings,
@@ -325,7 +326,7 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                     run_collect(stage, moves, log_path, quiet=True)
                 log = read_log(log_path, cfg.stage, min_rows=5)
                 data = residual_dataset(log, afm)
-            model = train_residual_model(data, afm, meth.model)
+            model, _ = with_floor_check(train_residual_model(data, afm, meth.model), data)
             t_fit = time.perf_counter() - t0
             with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
                 audit = rig_audit.training_evidence(stage, moves, log.t, data, model)
@@ -345,7 +346,7 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                     last = direction.after_move(last, s[1:], afm.q_of(prev))
             sel = (model.info.get("noise_selection") or {}).get("selected")
             out["runs"].append({"n": n, "method": name, "fit_s": t_fit, "selected": sel, "audit": audit,
-                                "targets": rows})
+                                "floor_check": model.info.get("floor_check"), "targets": rows})
     return out
 
 

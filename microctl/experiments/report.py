@@ -420,6 +420,13 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
              + (f" (kappa {cfg.controller.kappa:g})" if R_E_SUMMARIES[cfg.controller.r_e].uses_kappa else "") + "."
              + (f" Seeds offset by {cfg.seed_offset} from the file's." if cfg.seed_offset else ""))
     L.append("")
+    floor = ((results.get("training") or {}).get("rounds") or [{}])[-1].get("floor_check")
+    if floor:  # microctl.models.floor_check, as `microctl train` warns
+        L += [f"**Warning: the final model's noise floor is not an estimate.** Its mean correction passes through "
+              f"{len(floor['rows'])} training reading(s) that its noise model gives only the floor (floor std "
+              f"{floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): the repeatability "
+              "it predicts at quiet moves, and so the EAFM's choices and bands, can be far too small. Collect moves "
+              "that leave every actuator nearly still (or re-read a pose a few times) and run again.", ""]
     L += bars_section(results)
     if results["common_random_numbers"]:
         L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "

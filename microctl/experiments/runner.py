@@ -39,6 +39,7 @@ from microctl.measurement.log import Measurement, MeasurementLogWriter, read_log
 from microctl.models import direction
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
+from microctl.models.floor_check import with_floor_check
 from microctl.models.outlier_screen import describe_screen
 from microctl.models.training import (
     noise_summary,
@@ -249,13 +250,18 @@ def _fit(run: _Run, info: dict, round_: int) -> EAFM:
     t0 = time.perf_counter()
     run.say(f"experiment: fitting the VHGPR to {len(data.y)} residuals (round {round_})")
     model = train_residual_model(data, run.afm, tr.model_settings(seed=run.cfg.seeds.gp + round_))
+    # a floor the mean correction passes through (microctl.models.floor_check), as `microctl train` checks it
+    model, floor = with_floor_check(model, data)
     model.save(run.out / "model.npz")
     info["rounds"].append({"round": round_, "rows": int(len(data.y)), "bound": float(model.bound),
                            "fit_time_s": time.perf_counter() - t0,
                            "f_log_lengthscales": np.asarray(model.f_log_lengthscales).tolist(),
                            "g_log_lengthscales": np.asarray(model.g_log_lengthscales).tolist(),
                            "se_selection": model.info.get("se_selection"),
-                           "noise": noise_summary(model, run.afm)})
+                           "noise": noise_summary(model, run.afm),
+                           "floor_check": model.info.get("floor_check")})
+    if floor is not None:
+        run.say(f"experiment: round {round_}: warning: {floor.describe()}")
     info["rows"] = int(len(data.y))
     screened = describe_screen((model.info.get("noise_selection") or {}).get("screened"), log.seq)
     if screened:  # the corrupt-reading screen (microctl.models.outlier_screen); the log keeps the rows

@@ -325,3 +325,31 @@ def test_figures_show_every_controller_with_units(quick_run):
         assert "(µm)" in ax.get_ylabel() or "(σ)" in ax.get_ylabel()
     assert "no unit" in c.get_xlabel()
     plt.close(fig)
+
+
+def test_a_degenerate_floor_is_warned_recorded_and_reported(tmp_path, capsys, monkeypatch):
+    """The experiment checks the trained floor as `microctl train` does (microctl.models.floor_check):
+    a degenerate check, planted here (the check itself is tested on a rig where the degeneracy
+    occurs, tests/models/test_floor_check.py), is said on stderr, kept in results.json's training
+    rounds and in the saved model's info, and named in report.md; a sound floor adds nothing."""
+    import microctl.models.floor_check as fc
+    from microctl.gp.vhgpr import FittedVHGPR
+
+    planted = fc.FloorCheck(rows=(3, 7), hat=(0.97, 0.91), floor_std_um=2e-5, floor_rows=4)
+    monkeypatch.setattr(fc, "interpolated_floor", lambda model, X: planted)
+    out = tmp_path / "out"
+    doc = {**TINY, "controllers": ["afm", "eafm"], "incremental": {"targets_um": [7], "trials": 2}}
+    assert main(["experiment", str(_write(tmp_path, doc)), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "round 0: warning: the mean correction passes through 2 of the 4 training reading(s)" in err
+    res = json.loads((out / "results.json").read_text())
+    assert res["training"]["rounds"][-1]["floor_check"] == {"rows": [3, 7], "hat": [0.97, 0.91], "floor_std_um": 2e-5}
+    assert FittedVHGPR.load(out / "model.npz").info["floor_check"]["rows"] == [3, 7]
+    assert "noise floor is not an estimate" in (out / "report.md").read_text()
+
+    monkeypatch.setattr(fc, "interpolated_floor", lambda model, X: fc.FloorCheck((), (), 0.02, 40))
+    out2 = tmp_path / "out2"
+    assert main(["experiment", str(_write(tmp_path, doc)), "--out", str(out2), "--quiet"]) == 0
+    res2 = json.loads((out2 / "results.json").read_text())
+    assert res2["training"]["rounds"][-1]["floor_check"] is None
+    assert "noise floor is not an estimate" not in (out2 / "report.md").read_text()
