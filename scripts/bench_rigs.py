@@ -326,8 +326,9 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                     run_collect(stage, moves, log_path, quiet=True)
                 log = read_log(log_path, cfg.stage, min_rows=5)
                 data = residual_dataset(log, afm)
-            model, _ = with_floor_check(train_residual_model(data, afm, meth.model), data)
+            model = train_residual_model(data, afm, meth.model)
             t_fit = time.perf_counter() - t0
+            model, _ = with_floor_check(model, data)  # kept in the JSON (microctl.models.floor_check)
             with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
                 audit = rig_audit.training_evidence(stage, moves, log.t, data, model)
             audit["entry_nats"] = rig_audit.entry_evidence(
