@@ -457,7 +457,8 @@ def failing_targets(results: list[dict]) -> list[dict]:
                                         ("mean", abs(t["err_um"]) > ERR_BAR_UM)) if bad]
                 if why:
                     out.append({"family": res.get("family", "stick_slip"), "seed": res["seed"], "n": r["n"],
-                                "method": r["method"], "why": "+".join(why), "audit": r.get("audit"), **t})
+                                "method": r["method"], "why": "+".join(why), "audit": r.get("audit"),
+                                "floor_check": r.get("floor_check"), **t})
     return out
 
 
@@ -515,7 +516,10 @@ def _fmt_fail(f: dict) -> str:
             + ("" if not f.get("audit") else
                f"; evidence against the model at the training moves {f['audit']['evidence_nats']:.1f} nats "
                f"(of it the mean {f['audit']['mean_part_nats']:.1f}; one source enters at "
-               f"{f['audit']['entry_nats']:.1f})"))
+               f"{f['audit']['entry_nats']:.1f})")
+            + ("" if not f.get("floor_check") else
+               f"; floor not an estimate: f passes through {len(f['floor_check']['rows'])} floor-only training "
+               f"readings (floor std {f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))
 
 
 def print_families(table: list[dict], results: list[dict]) -> None:

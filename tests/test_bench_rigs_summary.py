@@ -38,3 +38,19 @@ def test_calibration_counts_the_mean_error_with_the_scatter():
     assert abs(row["cal_min"] - 0.5) < 1e-12 and abs(row["cal_max"] - 2.0) < 1e-12
     # the rig fails on both counts: the third target's |err| 0.12 > 0.1 and the fourth's std is 2x the oracle's
     assert (row["rigs_pass"], row["rigs_err_pass"], row["rigs_std_pass"]) == (0, 0, 0)
+
+
+def test_a_failing_target_names_a_floor_the_mean_passes_through():
+    """A rig-run whose floor check is degenerate (kept in the JSON) says so on each failing target's
+    line; a run without one does not."""
+    bench = _bench()
+    t = {**_target(0.05, 0.15, 0.03, 0.004), "target_um": 6.0, "f_std_um": 0.03, "pred_noise_std_oracle_um": 0.01,
+         "q_prev_um": [0, 0, 0, 0], "q_um": [1, 1, 1, 1], "oracle_q_um": [1, 1, 1, 1]}
+    floor = {"rows": [16, 67], "hat": [1.0, 1.0], "floor_std_um": 5.7e-5}
+    results = [{"family": "hinge_slip", "seed": 8, "runs": [
+        {"n": 125, "method": "default", "targets": [t], "floor_check": floor},
+        {"n": 200, "method": "default", "targets": [t], "floor_check": None}]}]
+    lines = [bench._fmt_fail(f) for f in bench.failing_targets(results)]
+    assert len(lines) == 2 and all(": mean;" in ln for ln in lines)
+    assert "floor not an estimate: f passes through 2 floor-only training readings (floor std 5.7e-05 µm" in lines[0]
+    assert "floor not an estimate" not in lines[1]
