@@ -70,7 +70,8 @@ class FloorCheck:
         return (f"the mean correction passes through {len(self.rows)} of the {self.floor_rows} training reading(s) "
                 f"that the noise model gives only its floor (hat values up to {max(self.hat):.2f}): the floor std "
                 f"{self.floor_std_um:.3g} µm is then not an estimate, and the repeatability predicted at quiet moves "
-                "can be far too small. Collect more moves that leave every actuator nearly still (or re-read a pose "
+                "can be far too small, and so can the mean correction's stated uncertainty (the readings it passes "
+                "through weigh as if noise-free). Collect more moves that leave every actuator nearly still (or re-read a pose "
                 "a few times) and train again")
 
 
