@@ -27,6 +27,7 @@ import microctl.experiments.controllers as registry
 from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
+from microctl.models.floor_check import ADVICE, CONSEQUENCE
 from microctl.util import stats
 from microctl.util.atomic import write_text_atomic
 from microctl.util.io import to_jsonable, write_json
@@ -424,9 +425,8 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
     if floor:  # microctl.models.floor_check, as `microctl train` warns
         L += [f"**Warning: the final model's noise floor is not an estimate.** Its mean correction passes through "
               f"{len(floor['rows'])} training reading(s) that its noise model gives only the floor (floor std "
-              f"{floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): the repeatability "
-              "it predicts at quiet moves, and so the EAFM's choices and bands, can be far too small. Collect moves "
-              "that leave every actuator nearly still (or re-read a pose a few times) and run again.", ""]
+              f"{floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): {CONSEQUENCE}, "
+              f"and so can the EAFM's choices and bands. {ADVICE} and run again.", ""]
     L += bars_section(results)
     if results["common_random_numbers"]:
         L.append("Common random numbers: every trial k of every controller ran on a fresh simulated stage "

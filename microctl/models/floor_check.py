@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR"]
+__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR", "CONSEQUENCE", "ADVICE"]
 
 #: A training move whose reading f follows by more than this share (hat value) is interpolated:
 #: most of the reading is then in f, and the reading hardly informs the floor. (At 1/2, fits with a
@@ -69,10 +69,14 @@ class FloorCheck:
         """One line for ``microctl train``."""
         return (f"the mean correction passes through {len(self.rows)} of the {self.floor_rows} training reading(s) "
                 f"that the noise model gives only its floor (hat values up to {max(self.hat):.2f}): the floor std "
-                f"{self.floor_std_um:.3g} µm is then not an estimate, and the repeatability predicted at quiet moves "
-                "can be far too small, and so can the mean correction's stated uncertainty (the readings it passes "
-                "through weigh as if noise-free). Collect more moves that leave every actuator nearly still (or re-read a pose "
-                "a few times) and train again")
+                f"{self.floor_std_um:.3g} µm is then not an estimate, and {CONSEQUENCE}. {ADVICE} and train again")
+
+
+#: What a floor that is not an estimate does, and what to collect then (``describe`` and the
+#: experiment's report.md say both).
+CONSEQUENCE = ("the repeatability predicted at quiet moves can be far too small, and so can the mean correction's "
+               "stated uncertainty (the readings it passes through weigh as if noise-free)")
+ADVICE = "Collect more moves that leave every actuator nearly still (or re-read a pose a few times)"
 
 
 def interpolated_floor(model, X: np.ndarray) -> FloorCheck | None:
