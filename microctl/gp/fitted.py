@@ -25,6 +25,7 @@ from microctl.gp.modelfile import read_model, write_model
 from microctl.gp.noise_models import noise_model_class
 from microctl.gp.noise_prior import LogVarianceMean
 from microctl.gp.posterior import Posterior
+from microctl.gp.trend import FeatureTrend
 
 __all__ = ["VHGPRPrediction", "FittedVHGPR"]
 
@@ -127,6 +128,13 @@ class FittedVHGPR:
     g_feature_gate, g_feature_gate_offset : ndarray, shapes (p, d) and (p,), or None
         The gates of gated features (``rev``, :mod:`microctl.gp.shaped_features`) in
         standardised inputs, ``c = G . xs + h`` in the gate's own units; None: no gated feature.
+    f_trend_matrix, f_trend_offset, f_trend_params, f_trend_scale : ndarray, or None
+        f's feature trend (:mod:`microctl.gp.trend`) on the standardised inputs the kernels
+        read, shapes (t, k), (t,), (t, 2), (t,); None: no trend.
+    f_trend_log_var : float or None
+        log of the trend coefficients' prior variance.
+    f_trend_names, f_trend_shapes : tuple of str
+        The trend features' names (the noise sources they come from) and shapes.
     posterior_form : {"exact", "sparse"}
         ``"exact"``: the fields above as a VHGPR fit writes them. ``"sparse"``
         (:mod:`microctl.gp.sparse`): ``X`` holds the M inducing inputs, ``f_chol``/``g_chol``
@@ -172,6 +180,13 @@ class FittedVHGPR:
     posterior_form: str = _stored("meta", default="exact")
     g_feature_gate: np.ndarray | None = _stored("optional_array", shape=("p", "d"), default=None)
     g_feature_gate_offset: np.ndarray | None = _stored("optional_array", shape=("p",), default=None)
+    f_trend_matrix: np.ndarray | None = _stored("optional_array", shape=("t", "k"), default=None)
+    f_trend_offset: np.ndarray | None = _stored("optional_array", shape=("t",), default=None)
+    f_trend_params: np.ndarray | None = _stored("optional_array", shape=("t", "2"), default=None)
+    f_trend_scale: np.ndarray | None = _stored("optional_array", shape=("t",), default=None)
+    f_trend_log_var: float | None = _stored("optional_float", log=True, default=None)
+    f_trend_names: tuple[str, ...] = _stored("meta", default=())
+    f_trend_shapes: tuple[str, ...] = _stored("meta", default=())
 
     @classmethod
     def stored(cls, role: str) -> tuple[str, ...]:
@@ -202,7 +217,16 @@ class FittedVHGPR:
     @property
     def f_kernel(self) -> Kernel:
         """The kernel of f (:class:`~microctl.gp.kernels.Kernel`)."""
-        return Kernel(self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var, self.f_log_linear_vars)
+        return Kernel(self.f_log_lengthscales, self.f_log_signal_var, self.f_log_bias_var, self.f_log_linear_vars,
+                      trend=self.f_trend)
+
+    @property
+    def f_trend(self) -> FeatureTrend | None:
+        """f's feature trend (:mod:`microctl.gp.trend`), or None."""
+        if self.f_trend_matrix is None:
+            return None
+        return FeatureTrend(self.f_trend_matrix, self.f_trend_offset, tuple(self.f_trend_shapes), self.f_trend_params,
+                            self.f_trend_scale, tuple(self.f_trend_names), float(self.f_trend_log_var))
 
     @property
     def g_kernel(self) -> Kernel:

@@ -5,6 +5,7 @@ One kernel family, written once:
     k(x, x') = sf2 * exp(-1/2 sum_d ((x_d - x'_d) / l_d)^2)          ARD squared exponential
                + b                                                   optional bias
                + sum_d v_d x_d x'_d                                  optional ARD linear part
+               + v_t sum_j phi_j(x) phi_j(x')                        optional feature trend (f only)
 
 All hyperparameters are positive and live in log space (``log l``, ``log sf2``, ``log b``,
 ``log v``). The linear part is Bayesian linear regression on the inputs folded into the GP
@@ -12,7 +13,9 @@ All hyperparameters are positive and live in log space (``log l``, ``log sf2``, 
 posterior mean then extrapolates along the fitted trend, and the posterior variance
 includes the coefficients' uncertainty. The AFM residual is dominated by linear
 miscalibration (actuator gains, offsets, sensor scale), which an SE kernel alone
-extrapolates poorly towards the faces of the workspace, where quiet poses lie.
+extrapolates poorly towards the faces of the workspace, where quiet poses lie. The feature
+trend (:mod:`microctl.gp.trend`) is the same regression on fixed nonlinear features of the
+inputs, with a fixed prior variance (no hyperparameter of the block).
 
 :class:`KernelSpec` says which parts a kernel has and where each hyperparameter sits in a
 flat block; :class:`Kernel` is one kernel with its hyperparameters, evaluated in NumPy
@@ -32,6 +35,8 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+
+from microctl.gp.trend import FeatureTrend
 
 __all__ = ["KernelSpec", "Kernel", "se_matrix", "ard_se"]
 
@@ -84,11 +89,14 @@ class KernelSpec:
         Constant term b.
     linear : bool
         ARD linear part with variances v (d).
+    trend : FeatureTrend or None
+        Fixed feature trend (:mod:`microctl.gp.trend`); not in the hyperparameter block.
     """
 
     d: int
     bias: bool = False
     linear: bool = False
+    trend: FeatureTrend | None = None
 
     @property
     def size(self) -> int:
@@ -102,7 +110,7 @@ class KernelSpec:
         log_b = float(block[d + 1]) if self.bias else None
         log_v = block[d + 1 + int(self.bias):].copy() if self.linear else None
         return Kernel(log_lengthscales=block[:d].copy(), log_signal_var=float(block[d]), log_bias_var=log_b,
-                      log_linear_vars=log_v)
+                      log_linear_vars=log_v, trend=self.trend)
 
     def bounds(self, ls: tuple[float, float], sf2: tuple[float, float], bias: tuple[float, float],
                linear: tuple[float, float], affine: Sequence[tuple[float, float]] | None = None
@@ -130,18 +138,21 @@ class Kernel:
     log_signal_var : float
     log_bias_var : float or None
     log_linear_vars : ndarray, shape (d,), or None
+    trend : FeatureTrend or None
+        The fixed feature trend (:mod:`microctl.gp.trend`), reading the first d inputs.
     """
 
     log_lengthscales: np.ndarray
     log_signal_var: float
     log_bias_var: float | None = None
     log_linear_vars: np.ndarray | None = None
+    trend: FeatureTrend | None = None
 
     @property
     def spec(self) -> KernelSpec:
         """The :class:`KernelSpec` of this kernel."""
         return KernelSpec(d=int(np.size(self.log_lengthscales)), bias=self.log_bias_var is not None,
-                          linear=self.log_linear_vars is not None)
+                          linear=self.log_linear_vars is not None, trend=self.trend)
 
     def pack(self) -> np.ndarray:
         """The flat hyperparameter block (inverse of :meth:`KernelSpec.unpack`)."""
@@ -189,6 +200,8 @@ class Kernel:
         v = self.linear_vars
         if v is not None:
             K += (self._cols(Xa) * v) @ self._cols(Xb).T
+        if self.trend is not None:
+            K += (self.trend.var * self.trend.values(Xa)) @ self.trend.values(Xb).T
         return K
 
     def diag(self, X: np.ndarray) -> np.ndarray:
@@ -198,6 +211,9 @@ class Kernel:
         v = self.linear_vars
         if v is not None:
             out += (X * X) @ v
+        if self.trend is not None:
+            P = self.trend.values(X)
+            out += self.trend.var * np.einsum("ij,ij->i", P, P)
         return out
 
     def grad_traces(self, G: np.ndarray, se: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -256,6 +272,10 @@ class Kernel:
             lw = (X * v).T @ weights  # (d,)
             value = value + Xs @ lw
             grad = grad + lw[None, :]
+        if self.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
+            tw = self.trend.var * (self.trend.values(X).T @ weights)  # (t,)
+            value = value + self.trend.values(Xs) @ tw
+            grad = grad + np.einsum("j,mjk->mk", tw, self.trend.gradients(Xs))
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad
@@ -275,16 +295,20 @@ class Kernel:
         v = self.linear_vars
         if v is not None:
             k = k + ca.mtimes(ca.DM(X * v), xs)
+        if self.trend is not None:
+            k = k + ca.mtimes(ca.DM(self.trend.var * self.trend.values(X)), self.trend.casadi(xs))
         return k
 
     def casadi_diag(self, xs: ca.MX) -> ca.MX:
         """k(x*, x*) for a symbolic input ``xs`` (d, 1)."""
-        out = self.signal_var + self.bias_var
+        out = ca.DM(self.signal_var + self.bias_var)
         v = self.linear_vars
+        xs = xs[:self.d] if xs.shape[0] > self.d else xs
         if v is not None:
-            xs = xs[:self.d] if xs.shape[0] > self.d else xs
-            return out + ca.dot(ca.DM(v), xs * xs)
-        return ca.DM(out)
+            out = out + ca.dot(ca.DM(v), xs * xs)
+        if self.trend is not None:
+            out = out + self.trend.var * ca.sumsqr(self.trend.casadi(xs))
+        return out
 
 
 def ard_se(

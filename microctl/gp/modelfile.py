@@ -36,8 +36,14 @@ __all__ = ["FORMAT_VERSION", "READABLE_VERSIONS", "write_model", "read_model"]
 #: allows inputs the kernels do not read (fewer lengthscales than inputs: a move's context that
 #: only g's prior mean reads) and the optional gates of gated noise features
 #: (``g_feature_gate``, ``g_feature_gate_offset``), so that an older microctl refuses such a model.
-FORMAT_VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+#: Version 5 adds f's optional feature trend (``f_trend_*``, :mod:`microctl.gp.trend`), which an
+#: older microctl would silently drop from the mean.
+FORMAT_VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
+#: The arrays of f's feature trend (all or none).
+TREND_ARRAYS = ("f_trend_matrix", "f_trend_offset", "f_trend_params", "f_trend_scale")
+#: Optional floats a file of version < 5 does not have.
+OPTIONAL_SINCE_5 = ("f_trend_log_var",)
 #: The posterior forms (:class:`~microctl.gp.fitted.FittedVHGPR` ``posterior_form``).
 POSTERIOR_FORMS = ("exact", "sparse")
 
@@ -101,9 +107,10 @@ def _str_tuple(v: Any) -> tuple[str, ...]:
 
 
 #: Meta fields written only when set (older models' files stay as they were).
-_WRITTEN_WHEN_SET = ("g_feature_shapes", "g_feature_params")
+_WRITTEN_WHEN_SET = ("g_feature_shapes", "g_feature_params", "f_trend_names", "f_trend_shapes")
 #: How the meta fields are written to JSON (default: as they are) ...
 _META_WRITE = {"x_names": list, "g_feature_names": list, "info": jsonable, "g_feature_shapes": list,
+               "f_trend_names": list, "f_trend_shapes": list,
                "g_feature_params": lambda v: [[float(a), float(b)] for a, b in v]}
 #: ... and read back: (converter, default when absent; no default: required).
 _META_READ: dict[str, tuple] = {
@@ -114,6 +121,8 @@ _META_READ: dict[str, tuple] = {
     "info": (dict, {}),
     "g_feature_names": (_str_tuple, []),
     "g_feature_shapes": (_str_tuple, []),
+    "f_trend_names": (_str_tuple, []),
+    "f_trend_shapes": (_str_tuple, []),
     "g_feature_params": (lambda v: tuple((float(a), float(b)) for a, b in v), []),
 }
 
@@ -195,6 +204,9 @@ def _fields_from(cls: type, data: dict) -> dict[str, Any]:
     for name in cls.stored("float"):
         kw[name] = float(data[name])
     for name in cls.stored("optional_float"):
+        if name in OPTIONAL_SINCE_5 and name not in data:  # a file written before the field existed
+            kw[name] = None
+            continue
         v = np.asarray(data[name], dtype=np.float64).ravel()
         if v.size > 1:
             raise ValueError(f"'{name}' has {v.size} values")
@@ -222,12 +234,19 @@ def _check_shapes(path: Path, kw: dict, dims: dict[str, tuple[str, ...]]) -> Non
     k = int(np.size(kw["f_log_lengthscales"])) if kw.get("f_log_lengthscales") is not None else d
     if not 1 <= k <= d:
         raise DataError(f"{path}: malformed model file: {k} lengthscales for {d} inputs (expected 1 to {d})")
-    size = {"n": n, "d": d, "k": k, "p": p, "p+1": p + 1}
+    trend = kw.get("f_trend_matrix")
+    t = trend.shape[0] if trend is not None and trend.ndim == 2 else 0
+    size = {"n": n, "d": d, "k": k, "p": p, "p+1": p + 1, "t": t, "2": 2}
     shapes = {k: tuple(size[s] for s in spec) for k, spec in dims.items() if kw.get(k) is not None}
     features = [k for k in FEATURE_ARRAYS if kw.get(k) is not None]
     if features and len(features) != 3:
         raise DataError(f"{path}: malformed model file: g's prior-mean features need g_feature_matrix, "
                         f"g_feature_offset and g_log_feature_coef together (found {', '.join(features)})")
+    trend = [k for k in TREND_ARRAYS if kw.get(k) is not None]
+    if trend and (len(trend) != len(TREND_ARRAYS) or kw.get("f_trend_log_var") is None
+                  or not len(kw.get("f_trend_names", ())) == len(kw.get("f_trend_shapes", ())) == t):
+        raise DataError(f"{path}: malformed model file: f's feature trend needs {', '.join(TREND_ARRAYS)}, "
+                        f"f_trend_log_var and one name and shape per feature together (found {', '.join(trend)})")
     for name, shape in shapes.items():
         if kw[name].shape != shape:
             raise DataError(f"{path}: malformed model file: '{name}' has shape {kw[name].shape}, expected {shape}")

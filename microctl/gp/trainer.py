@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,8 @@ from microctl.gp.homoscedastic import fit_homoscedastic, init_mean_coef
 from microctl.gp.kernels import KernelSpec
 from microctl.gp.noise_models import NoiseModel, noise_model_class
 from microctl.gp.noise_prior import NoiseFeatures
+from microctl.gp.shaped_features import ShapedFeatures
+from microctl.gp.trend import FeatureTrend
 from microctl.util.blas import single_thread_blas
 
 __all__ = ["VHGPR", "default_max_iter"]
@@ -71,6 +74,20 @@ def _standardise(X: np.ndarray, y: np.ndarray) -> dict:
             "y_scale": y_scale, "Xs": Xs, "ys": ys}
 
 
+#: Prior variance of f's feature-trend coefficients when ``linear_prior_var`` is None (fitted).
+TREND_PRIOR_VAR = 10.0
+
+
+def trend_fields(trend: FeatureTrend | None) -> dict[str, Any]:
+    """The :class:`FittedVHGPR` arrays of f's feature trend (all None without one)."""
+    if trend is None:
+        return {"f_trend_matrix": None, "f_trend_offset": None, "f_trend_params": None, "f_trend_scale": None,
+                "f_trend_log_var": None}
+    return {"f_trend_matrix": np.array(trend.matrix, dtype=float), "f_trend_offset": np.array(trend.offset, dtype=float),
+            "f_trend_params": np.array(trend.params, dtype=float), "f_trend_scale": np.array(trend.scale, dtype=float),
+            "f_trend_log_var": float(trend.log_var)}
+
+
 # --------------------------------------------------------------------------- the trainer
 
 
@@ -92,6 +109,11 @@ class VHGPR:
         variance of every linear coefficient, fixed (standardised units; a large value is
         the vague-prior limit of R&W 2.7, where the trend is estimated by generalised least
         squares and no hyperparameter can switch it off).
+    mean_features : ShapedFeatures, optional
+        Fixed features of f's feature trend (:mod:`microctl.gp.trend`), ungated maps of the
+        inputs the kernels read in their original units, each rescaled to its mean over the
+        training inputs here; their coefficients' prior variance is ``linear_prior_var`` (10
+        when None). None (default): no trend of features.
     noise_features : NoiseFeatures, optional
         Features of a parametric prior mean of g (:mod:`microctl.gp.noise_prior` eq. 1), in the
         units of the inputs and of y. None (default): the paper's constant mu0.
@@ -154,6 +176,7 @@ class VHGPR:
         bias: bool = False,
         linear: bool | tuple[int, ...] = False,
         linear_prior_var: float | None = None,
+        mean_features: ShapedFeatures | None = None,
         noise_features: NoiseFeatures | None = None,
         noise_model: str | None = None,
         n_restarts: int = 2,
@@ -200,6 +223,7 @@ class VHGPR:
         self.linear = linear
         self.linear_prior_var = None if linear_prior_var is None else float(linear_prior_var)
         self.noise_features = noise_features
+        self.mean_features = mean_features
         self.noise = _noise_model(noise_model, noise_features)
         self.n_restarts = int(n_restarts)
         self.max_iter = None if max_iter is None else int(max_iter)
@@ -262,12 +286,16 @@ class VHGPR:
 
         rng = np.random.default_rng(self.random_state)
         # a linear trend is affine: f's kernel gets the constant (bias) term with it
-        f_spec = KernelSpec(d=d, bias=self.bias or self.linear is not False, linear=self.linear is not False)
+        f_spec = KernelSpec(d=d, bias=self.bias or self.linear is not False, linear=self.linear is not False,
+                            trend=self._trend(X[:, :d], data["x_mean"][:d], data["x_scale"][:d]))
         g_spec = KernelSpec(d=d, bias=self.bias)
         lin_bounds = self._linear_bounds(d)
         p = 0 if Phi is None else Phi.shape[1]
         if self.warm_start is None:
-            gp, loo, used = fit_homoscedastic(Xs[:, :d], ys, f_spec, rng, lin_bounds)
+            # the start is the homoscedastic GP without f's feature trend: a homoscedastic GP given a
+            # trend along a heteroscedastic noise's direction can prefer to interpolate the data (noise
+            # variance at its floor), a start the VHGPR does not leave (tests/gp/test_trend.py)
+            gp, loo, used = fit_homoscedastic(Xs[:, :d], ys, replace(f_spec, trend=None), rng, lin_bounds)
             kern = gp[:-1]
             # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
             # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
@@ -303,8 +331,9 @@ class VHGPR:
             "g_log_feature_coef": None if Phi is None else np.array(log_c[1:]),
             "g_mean_coef_cov": coef_cov if self.propagate else None,
             "g_feature_gate": None if gate is None else gate[0], "g_feature_gate_offset": None if gate is None else gate[1],
+            **trend_fields(f_spec.trend),
         }
-        for a in list(arrays.values()) + [v for v in optional.values() if v is not None]:
+        for a in list(arrays.values()) + [v for v in optional.values() if isinstance(v, np.ndarray)]:
             freeze(a)
         return FittedVHGPR(
             **arrays, **optional,
@@ -315,14 +344,23 @@ class VHGPR:
             g_feature_names=() if nf is None else tuple(nf.names), noise_model_name=noise.name,
             g_feature_shapes=() if nf is None else tuple(nf.shapes),
             g_feature_params=() if nf is None else tuple((float(a), float(b)) for a, b in nf.params),
+            f_trend_names=() if f_spec.trend is None else f_spec.trend.names,
+            f_trend_shapes=() if f_spec.trend is None else f_spec.trend.shapes,
         )
+
+    def _trend(self, X: np.ndarray, x_mean: np.ndarray, x_scale: np.ndarray) -> FeatureTrend | None:
+        """f's feature trend from ``mean_features`` rescaled on the training inputs X (original units)."""
+        mf = self.mean_features
+        if mf is None:
+            return None
+        return FeatureTrend.from_original_units(mf.rescaled(X), x_mean, x_scale, math.log(TREND_PRIOR_VAR))
 
     def _warm_point(self, n: int, f_spec: KernelSpec, g_spec: KernelSpec, names: tuple[str, ...],
                     thash: str) -> np.ndarray:
         """The initial point from ``warm_start`` (see the class), shape (layout size,)."""
         w = self.warm_start
         kf, kg = w.f_kernel, w.g_kernel
-        if kf.spec != f_spec or kg.spec != g_spec:
+        if replace(kf.spec, trend=None) != replace(f_spec, trend=None) or kg.spec != g_spec:  # a trend may differ
             raise ConfigError(f"VHGPR: the warm start's kernels ({kf.spec}, {kg.spec}) are not of this fit's form "
                               f"({f_spec}, {g_spec})")
         coef = {} if w.g_log_feature_coef is None else dict(zip(w.g_feature_names, np.asarray(w.g_log_feature_coef)))
