@@ -83,7 +83,7 @@ class Training:
         One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
-    noise_model, linear_trend, restarts, max_iter
+    noise_model, linear_trend, mean_shift, restarts, max_iter
         The residual model (:class:`~microctl.models.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
         Refinement rounds after the first fit (0: none): each runs incremental episodes,
@@ -108,6 +108,7 @@ class Training:
     episode_moves: int = setting(4, lo=1, hi=1000)
     noise_model: str = same_setting(ResidualModelSettings, "noise_model")
     linear_trend: bool = same_setting(ResidualModelSettings, "linear_trend")
+    mean_shift: bool = same_setting(ResidualModelSettings, "mean_shift")
     restarts: int = same_setting(ResidualModelSettings, "restarts")
     max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
     refine_rounds: int = setting(0, lo=0, hi=20)
@@ -122,7 +123,7 @@ class Training:
     def model_settings(self, seed: int) -> ResidualModelSettings:
         """The residual model these settings describe, with the fit's seed."""
         return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend,
-                                     restarts=self.restarts, max_iter=self.max_iter, seed=seed)
+                                     mean_shift=self.mean_shift, restarts=self.restarts, max_iter=self.max_iter, seed=seed)
 
 
 @dataclass(frozen=True)

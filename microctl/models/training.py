@@ -11,7 +11,6 @@ The test fixture that builds a model from fixed hyperparameters (no fit) is
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -21,11 +20,14 @@ import numpy as np
 from microctl.errors import ConfigError, DataError
 from microctl.gp.noise_models import noise_model_class, noise_model_names
 from microctl.gp.noise_prior import NoiseFeatures
+from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.direction import log_directions
 from microctl.models.eafm import bind_to_stage, context_names
+from microctl.models.mean_shift import trend_features, with_mean_shift
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
+from microctl.models.noise_summary import noise_summary
 from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, tail_bound
 from microctl.util.fields import setting, validate_settings
 
@@ -180,6 +182,10 @@ class ResidualModelSettings:
         hyperparameters from :data:`SPARSE_SUBSET` rows, the posterior on ``inducing`` points).
     inducing : int
         Inducing points of the sparse form (the controller's cost grows with them, not with n).
+    mean_shift : bool
+        True (default): with the ``dictionary`` noise model, the mean correction f gets a trend
+        in the selected noise sources' features (:mod:`microctl.models.mean_shift`: the mean
+        shift that scatter causes); False: none.
     """
 
     noise_model: str = setting("dictionary", choices=NOISE_MODELS)
@@ -191,6 +197,7 @@ class ResidualModelSettings:
     seed: int = setting(0, lo=0, hi=2**63 - 1)
     gp: str = setting("auto", choices=GP_FORMS)
     inducing: int = setting(256, lo=2, hi=5000)
+    mean_shift: bool = setting(True)
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
@@ -272,14 +279,16 @@ def train_residual_model(data: ResidualData, afm: AnalyticForwardModel,
 
 def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSettings,
          features: NoiseFeatures | None, noise_model: str, max_time: float | None,
-         warm_start: FittedVHGPR | None = None) -> FittedVHGPR:
-    """One VHGPR fit of the residual with the settings' mean model and the given noise model
-    (from ``warm_start``'s hyperparameters when given: :class:`~microctl.gp.trainer.VHGPR`)."""
+         warm_start: FittedVHGPR | None = None, mean_features: ShapedFeatures | None = None) -> FittedVHGPR:
+    """One VHGPR fit of the residual with the settings' mean model (and f's trend of
+    ``mean_features``, :mod:`microctl.models.mean_shift`) and the given noise model (from
+    ``warm_start``'s hyperparameters when given: :class:`~microctl.gp.trainer.VHGPR`)."""
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
     sparse = uses_sparse(len(data.y), st)
     trainer = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
                     se=st.se if st.linear_trend else "on", noise_features=features, noise_model=noise_model,
+                    mean_features=mean_features,
                     n_restarts=st.restarts,
                     propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
                     max_iter=st.max_iter, random_state=st.seed, max_time=max_time,
@@ -304,7 +313,10 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
        the first model refitted without them, are set aside (:func:`_screened`,
        :mod:`microctl.models.outlier_screen`) and steps 1-2 redone without them;
     3. the residual model is fitted again with exactly the selected sources as g's prior mean
-       (none selected: the paper's constant prior mean), their coefficients inside the bound.
+       (none selected: the paper's constant prior mean), their coefficients inside the bound;
+    4. with ``mean_shift`` (the default), once more with the selected (ungated) sources also as
+       features of a trend in f (:mod:`microctl.models.mean_shift`: the mean shift that scatter
+       causes), started from step 3's model.
 
     The selection (names, log-likelihood gains and the gains they needed) and the rows set aside
     (``"screened"``: 0-based positions in ``data``, their deletion residuals, the bound;
@@ -347,9 +359,16 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
         record["gains_nats"] = [record["gains_nats"][j] for j in keep]
         record["p_adjusted"] = [record["p_adjusted"][j] for j in keep]
         # on many rows (sparse) the refit starts where the larger fit ended (one run)
-        model = _fit_selected(data, afm, st, [rows[j] for j in keep], [offs[j] for j in keep],
-                              [names[j] for j in keep], [shapes[j] for j in keep], [params[j] for j in keep],
-                              [gates[j] for j in keep], max_time, warm_start=model if sparse else None)
+        rows, offs, names, shapes, params, gates = ([v[j] for j in keep] for v in (rows, offs, names, shapes, params,
+                                                                                  gates))
+        model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time,
+                              warm_start=model if sparse else None)
+    if st.mean_shift:  # the mean shift the selected sources' scatter causes (mean_shift)
+        feats = trend_features(names, rows, offs, shapes, params, data.X.shape[1])
+        model, shift = with_mean_shift(model, feats, lambda mf, warm: _fit_selected(
+            data, afm, _with_chosen_se(st, model), rows, offs, names, shapes, params, gates, max_time, warm, mf))
+        if shift is not None:
+            record["mean_shift"] = shift
     # every candidate added alone at its best size, with its likelihood gain: the controller's
     # least-motion rule (microctl.control.credible) weighs these alternatives by their evidence
     Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
@@ -511,7 +530,8 @@ PRUNE_SHARE = 1e-3
 PRUNE_Z = 1.0
 
 
-def _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time, warm_start=None) -> FittedVHGPR:
+def _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time, warm_start=None,
+                  mean_features=None) -> FittedVHGPR:
     """The residual model with exactly the given sources as g's prior mean (none: the constant).
 
     The sources act on x = [s; u] and the move's context; when none reads the context (no
@@ -521,10 +541,10 @@ def _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_t
     A, G, d = np.array(rows), np.array(gates), data.X.shape[1]
     if not np.any(G):
         feats = NoiseFeatures(A[:, :d], np.array(offs), tuple(names), tuple(shapes), tuple(params))
-        return _fit(data, afm, st, feats, "dictionary", max_time, warm_start)
+        return _fit(data, afm, st, feats, "dictionary", max_time, warm_start, mean_features)
     feats = NoiseFeatures(A, np.array(offs), tuple(names), tuple(shapes), tuple(params), gate=G,
                           context=A.shape[1] - d)
-    return _fit(data.with_context(afm.n_q), afm, st, feats, "dictionary", max_time, warm_start)
+    return _fit(data.with_context(afm.n_q), afm, st, feats, "dictionary", max_time, warm_start, mean_features)
 
 
 def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:
@@ -539,54 +559,6 @@ def _effective_sources(model: FittedVHGPR, X: np.ndarray) -> list[int]:
     c, c_std = np.asarray(par.get("c", prior.coef)), np.asarray(par.get("c_std", np.zeros(prior.p + 1)))
     return [j for j in range(prior.p)
             if float(np.max(share[:, j + 1])) >= PRUNE_SHARE and c[j + 1] >= PRUNE_Z * c_std[j + 1]]
-
-
-def noise_summary(model: FittedVHGPR, afm: AnalyticForwardModel) -> dict:
-    """The physical noise model's parameters in the diagnosis vocabulary's units.
-
-    ``floor_std_um = sqrt(c_0) y_scale`` (gauge noise and driver accuracy together) and, per
-    actuator, ``friction_std_per_um = sqrt(c_i) / |s_i|`` with ``s_i`` the AFM's tool
-    sensitivity to actuator i (``w K^+``: how a slip of actuator i moves the tool when the four
-    balls share it elastically), comparable with ``actuator_friction.std_per_um``.
-
-    Returns
-    -------
-    dict
-        ``{"noise_model", "floor_std_um", "actuators": {name: {"tool_std_per_um",
-        "friction_std_per_um"}}}``; only ``noise_model`` for the ``hgp`` model.
-    """
-    out: dict = {"noise_model": model.noise_model}
-    selection = model.info.get("noise_selection")
-    if selection is not None:
-        out["selection"] = selection
-    if model.noise_model == "dictionary":
-        out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
-        if model.g_feature_matrix is None:
-            out["sources"] = {}
-            return out
-        c = np.exp(np.asarray(model.g_log_feature_coef))
-        out["sources"] = {name: {"shape": shape, "params": list(par), "coef_um2": float(ci * model.y_scale**2)}
-                          for name, shape, par, ci in zip(model.g_feature_names, model.g_feature_shapes,
-                                                          model.g_feature_params, c)}
-        return out
-    if model.noise_model != "physical":
-        return out
-    sens_all = np.asarray(afm.w_pred) @ np.linalg.pinv(afm.K)  # (n_q,)
-    sens = [sens_all[afm.actuator_names.index(f.removeprefix("d"))] for f in model.g_feature_names]
-    c = np.exp(np.asarray(model.g_log_feature_coef))
-    params = model.info.get("noise_parameters") or {}
-    c_std = np.asarray(params.get("c_std", [math.nan] * (1 + c.size)), dtype=float)
-    out["floor_std_um"] = float(math.exp(0.5 * model.g_mu0) * model.y_scale)
-    out["actuators"] = {}
-    for name, ci, sd, si in zip(model.g_feature_names, c, c_std[1:], sens):
-        # std per µm = sqrt(c) (c in units of y_scale^2 per (µm / y_scale)^2 = per µm^2 of step);
-        # its standard error by the delta method, bounded by sqrt(sd) where c is near zero
-        se = min(0.5 * sd / math.sqrt(ci), math.sqrt(sd)) if ci > 0 and math.isfinite(sd) else math.nan
-        out["actuators"][name.removeprefix("d")] = {
-            "tool_std_per_um": float(math.sqrt(ci)), "tool_std_per_um_se": float(se),
-            "friction_std_per_um": float(math.sqrt(ci) / max(abs(si), 1e-12)),
-            "friction_std_per_um_se": float(se / max(abs(si), 1e-12))}
-    return out
 
 
 def save_model(model: FittedVHGPR, path: str | Path) -> None:

@@ -163,3 +163,35 @@ def test_train_line_names_exchanged_shapes():
     assert "dq3:sq, dq1:sq" in line and "dq3:abs -> dq3:sq" in line
     del summary["selection"]["shape_swaps"]
     assert "re-chosen" not in describe_noise(summary)
+
+
+def test_train_line_names_the_mean_shift_trend():
+    """The one-line summary says which sources the mean correction's trend reads (docs/vhgpr.md,
+    "The mean shift that scatter causes"), and says nothing of it without one."""
+    from microctl.cli.commands.train import describe_noise
+
+    summary = {"noise_model": "dictionary", "floor_std_um": 0.05, "sources": {"dq4:sq": {}},
+               "selection": {"candidates": 65, "mean_shift": {"features": ["dq4:sq"], "gain_nats": 1.5}}}
+    assert "the mean correction has a trend in dq4:sq" in describe_noise(summary)
+    del summary["selection"]["mean_shift"]
+    assert "trend" not in describe_noise(summary)
+
+
+def test_train_no_mean_shift_is_passed_to_the_settings(monkeypatch, tmp_path):
+    """``--no-mean-shift`` reaches the residual model's settings (the default: on)."""
+    from microctl.cli.commands import train as train_cmd
+
+    seen = []
+
+    def fake(data, afm, settings):
+        seen.append(settings.mean_shift)
+        raise train_cmd.DataError("stop here")
+
+    monkeypatch.setattr(train_cmd, "train_residual_model", fake)
+    log = tmp_path / "log.csv"
+    from microctl import api
+
+    api.collect(api.load_stage(CONFIG), 12, log, seed=1)
+    for extra, want in (([], True), (["--no-mean-shift"], False)):
+        rc = main(["train", str(log), "--config", str(CONFIG), "-o", str(tmp_path / "m.npz"), *extra])
+        assert rc == 2 and seen[-1] is want

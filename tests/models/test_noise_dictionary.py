@@ -270,9 +270,9 @@ def test_the_sparse_path_fits_once_then_starts_the_pruned_refit_where_it_ended(t
     calls = []
     real_fit = training._fit
 
-    def fit(data, afm, st, features, noise_model, max_time, warm_start=None):
+    def fit(data, afm, st, features, noise_model, max_time, warm_start=None, mean_features=None):
         calls.append((len(data.y), st.restarts, st.se, warm_start is not None))
-        return real_fit(data, afm, st, features, noise_model, max_time, warm_start)
+        return real_fit(data, afm, st, features, noise_model, max_time, warm_start, mean_features)
 
     monkeypatch.setattr(training, "_fit", fit)
     monkeypatch.setattr(training, "_effective_sources", lambda model, X: [])  # prune every source

@@ -51,6 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="no affine trend in u in the mean correction (the paper's SE kernel alone)")
     p.add_argument("--se", choices=("auto", "on", "off"), default=d.se,
                    help=f"the mean correction's SE part (default {d.se}: kept only where the data pay for it)")
+    p.add_argument("--no-mean-shift", dest="mean_shift", action="store_false",
+                   help="no trend in the selected noise sources in the mean correction (the mean shift that "
+                   "scatter causes, docs/vhgpr.md)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
                    help=f"the GP's form (default {d.gp}: exact up to {AUTO_SPARSE_ROWS} rows, sparse above)")
     p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
@@ -69,7 +72,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed, gp=args.gp,
-                                         inducing=args.inducing)
+                                         inducing=args.inducing, mean_shift=args.mean_shift)
     except SettingError as exc:  # name the option, not the field
         raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
@@ -127,8 +130,11 @@ def describe_noise(summary: dict) -> str:
         src = ", ".join(summary["sources"])
         swaps = "; ".join(f"{a} -> {b}" for a, b in sel.get("shape_swaps", []))
         swaps = f" (shapes re-chosen with the other sources in: {swaps})" if swaps else ""
+        shift = sel.get("mean_shift")
+        shift = (f"; the mean correction has a trend in {', '.join(shift['features'])} (the mean shift that "
+                 f"scatter causes)") if shift else ""
         return (f"noise model dictionary: floor std {summary['floor_std_um']:.4f} µm; sources selected by the data "
-                f"among {sel['candidates']} candidates: {src}{swaps}")
+                f"among {sel['candidates']} candidates: {src}{swaps}{shift}")
     if summary["noise_model"] != "physical":
         return "noise model hgp (the paper's: g ~ GP(mu0, K_g))"
     acts = ", ".join(f"{name} {a['friction_std_per_um']:.3f} ± {a['friction_std_per_um_se']:.3f}"
