@@ -25,6 +25,7 @@ from microctl.gp.modelfile import read_model, write_model
 from microctl.gp.noise_models import noise_model_class
 from microctl.gp.noise_prior import LogVarianceMean
 from microctl.gp.posterior import Posterior
+from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.trend import FeatureTrend
 
 __all__ = ["VHGPRPrediction", "FittedVHGPR"]
@@ -225,8 +226,9 @@ class FittedVHGPR:
         """f's feature trend (:mod:`microctl.gp.trend`), or None."""
         if self.f_trend_matrix is None:
             return None
-        return FeatureTrend(self.f_trend_matrix, self.f_trend_offset, tuple(self.f_trend_shapes), self.f_trend_params,
-                            self.f_trend_scale, tuple(self.f_trend_names), float(self.f_trend_log_var))
+        features = ShapedFeatures(self.f_trend_matrix, self.f_trend_offset, tuple(self.f_trend_shapes),
+                                  self.f_trend_params, self.f_trend_scale, tuple(self.f_trend_names))
+        return FeatureTrend(features, float(self.f_trend_log_var))
 
     @property
     def g_kernel(self) -> Kernel:

@@ -83,8 +83,9 @@ def trend_fields(trend: FeatureTrend | None) -> dict[str, Any]:
     if trend is None:
         return {"f_trend_matrix": None, "f_trend_offset": None, "f_trend_params": None, "f_trend_scale": None,
                 "f_trend_log_var": None}
-    return {"f_trend_matrix": np.array(trend.matrix, dtype=float), "f_trend_offset": np.array(trend.offset, dtype=float),
-            "f_trend_params": np.array(trend.params, dtype=float), "f_trend_scale": np.array(trend.scale, dtype=float),
+    f = trend.features
+    return {"f_trend_matrix": np.array(f.matrix, dtype=float), "f_trend_offset": np.array(f.offset, dtype=float),
+            "f_trend_params": np.array(f.params, dtype=float), "f_trend_scale": np.array(f.scale, dtype=float),
             "f_trend_log_var": float(trend.log_var)}
 
 
@@ -344,8 +345,8 @@ class VHGPR:
             g_feature_names=() if nf is None else tuple(nf.names), noise_model_name=noise.name,
             g_feature_shapes=() if nf is None else tuple(nf.shapes),
             g_feature_params=() if nf is None else tuple((float(a), float(b)) for a, b in nf.params),
-            f_trend_names=() if f_spec.trend is None else f_spec.trend.names,
-            f_trend_shapes=() if f_spec.trend is None else f_spec.trend.shapes,
+            f_trend_names=() if f_spec.trend is None else f_spec.trend.features.names,
+            f_trend_shapes=() if f_spec.trend is None else f_spec.trend.features.shapes,
         )
 
     def _trend(self, X: np.ndarray, x_mean: np.ndarray, x_scale: np.ndarray) -> FeatureTrend | None:

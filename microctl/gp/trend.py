@@ -18,10 +18,10 @@ stationary kernel over x = [s; u] cannot represent a shift that grows with the s
 mean would be learned as if the stage were linear and be biased exactly where the scatter is
 largest.
 
-The features are :mod:`microctl.gp.shaped_features` shapes of linear maps of the standardised
-inputs the kernel reads (the first k columns). NumPy values and input gradients
-(:meth:`FeatureTrend.values`, :meth:`FeatureTrend.gradients`) and CasADi
-(:meth:`FeatureTrend.casadi`) are side by side here.
+The features are :class:`~microctl.gp.shaped_features.ShapedFeatures` (ungated) on the
+standardised inputs the kernel reads (the first k columns), which give their NumPy and CasADi
+values; the input gradients the controller's seeding needs (:meth:`FeatureTrend.gradients`) are
+here.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import casadi as ca
 import numpy as np
 
 from microctl.errors import ConfigError
-from microctl.gp.shaped_features import GATED, SHAPES, _shape_ca, _shape_np
+from microctl.gp.shaped_features import GATED, SHAPES, ShapedFeatures
 
 __all__ = ["FeatureTrend", "shape_derivative"]
 
@@ -68,108 +68,82 @@ class FeatureTrend:
 
     Attributes
     ----------
-    matrix : ndarray, shape (t, k)
-        Row j maps the standardised inputs the kernel reads to ``z_j`` (in the quantity's own
-        units, µm for a step): ``z_j = matrix_j . xs + offset_j``.
-    offset : ndarray, shape (t,)
-    shapes : tuple of str
-        Ungated shapes of :data:`~microctl.gp.shaped_features.SHAPES`.
-    params : ndarray, shape (t, 2)
-    scale : ndarray, shape (t,)
-        Positive divisor of each feature (its mean over the training inputs: features of order 1).
-    names : tuple of str
+    features : ShapedFeatures
+        t ungated features on the standardised inputs the kernel reads (k columns): row j of
+        ``features.matrix`` maps them to ``z_j`` in the quantity's own units (µm for a step);
+        ``features.scale`` is each feature's mean over the training inputs (features of order 1).
     log_var : float
         log v, the coefficients' prior variance (standardised outputs per unit feature).
     """
 
-    matrix: np.ndarray
-    offset: np.ndarray
-    shapes: tuple[str, ...]
-    params: np.ndarray
-    scale: np.ndarray
-    names: tuple[str, ...]
+    features: ShapedFeatures
     log_var: float
 
     def __post_init__(self) -> None:
-        A = np.asarray(self.matrix, dtype=float)
-        t = A.shape[0] if A.ndim == 2 else -1
-        if (t < 1 or np.shape(self.offset) != (t,) or len(self.shapes) != t or np.shape(self.params) != (t, 2)
-                or np.shape(self.scale) != (t,) or len(self.names) != t):
-            raise ConfigError(f"feature trend: matrix {A.shape}, offset {np.shape(self.offset)}, {len(self.shapes)} "
-                              f"shapes, params {np.shape(self.params)}, scale {np.shape(self.scale)} and "
-                              f"{len(self.names)} names do not match (at least one feature)")
-        bad = [s for s in self.shapes if s not in SHAPES or s in GATED]
+        if not isinstance(self.features, ShapedFeatures) or self.features.p < 1:
+            raise ConfigError("feature trend: needs at least one ShapedFeatures feature")
+        bad = [s for s in self.features.shapes if s in GATED]
         if bad:
-            raise ConfigError(f"feature trend: shape(s) {bad} not allowed; valid: "
+            raise ConfigError(f"feature trend: shape(s) {bad} not allowed (they read a gate); valid: "
                               f"{sorted(k for k in SHAPES if k not in GATED)}")
-        for arr, what in ((A, "matrix"), (self.offset, "offset"), (self.params, "params"), (self.scale, "scale")):
-            if not np.all(np.isfinite(np.asarray(arr, dtype=float))):
-                raise ConfigError(f"feature trend: non-finite {what}")
-        if np.any(np.asarray(self.scale) <= 0) or not math.isfinite(self.log_var):
-            raise ConfigError("feature trend: every scale must be positive and log_var finite")
+        if not math.isfinite(self.log_var):
+            raise ConfigError("feature trend: log_var must be finite")
 
     def __eq__(self, other: object) -> bool:  # by value (kernel specs compare their trends)
         if not isinstance(other, FeatureTrend):
             return NotImplemented
-        return (self.shapes == other.shapes and self.names == other.names and self.log_var == other.log_var
-                and all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
-                        ((self.matrix, other.matrix), (self.offset, other.offset), (self.params, other.params),
-                         (self.scale, other.scale))))
+        a, b = self.features, other.features
+        return (a.shapes == b.shapes and a.names == b.names and self.log_var == other.log_var
+                and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in
+                        ((a.matrix, b.matrix), (a.offset, b.offset), (a.params, b.params), (a.scale, b.scale))))
 
     __hash__ = None  # type: ignore[assignment]
 
     @property
     def t(self) -> int:
         """Number of features."""
-        return int(np.asarray(self.matrix).shape[0])
+        return self.features.p
 
     @property
     def k(self) -> int:
         """Number of (standardised) input columns the features read."""
-        return int(np.asarray(self.matrix).shape[1])
+        return int(np.asarray(self.features.matrix).shape[1])
 
     @property
     def var(self) -> float:
         """v = exp(log_var)."""
         return math.exp(self.log_var)
 
-    def _z(self, X: np.ndarray) -> np.ndarray:
-        return np.asarray(X, dtype=float)[:, :self.k] @ np.asarray(self.matrix, dtype=float).T + np.asarray(self.offset)
-
     def values(self, X: np.ndarray) -> np.ndarray:
         """phi at the rows of the standardised inputs X (columns beyond k ignored), shape (m, t)."""
-        Z = self._z(X)
-        P = np.asarray(self.params, dtype=float)
-        out = np.empty_like(Z)
-        for j, kind in enumerate(self.shapes):
-            out[:, j] = _shape_np(kind, Z[:, j], P[j])
-        return out / np.asarray(self.scale, dtype=float)
+        return self.features.values(np.asarray(X, dtype=float)[:, :self.k])
 
     def gradients(self, X: np.ndarray) -> np.ndarray:
         """d phi_j / d xs at the rows of X, shape (m, t, k)."""
-        Z = self._z(X)
-        P = np.asarray(self.params, dtype=float)
+        f = self.features
+        Z = f.linear(np.asarray(X, dtype=float)[:, :self.k])
+        P = np.asarray(f.params, dtype=float)
         D = np.empty_like(Z)
-        for j, kind in enumerate(self.shapes):
-            D[:, j] = shape_derivative(kind, Z[:, j], P[j]) / float(self.scale[j])
-        return D[:, :, None] * np.asarray(self.matrix, dtype=float)[None, :, :]
+        for j, kind in enumerate(f.shapes):
+            D[:, j] = shape_derivative(kind, Z[:, j], P[j]) / float(f.scale[j])
+        return D[:, :, None] * np.asarray(f.matrix, dtype=float)[None, :, :]
 
     def casadi(self, xs: ca.MX) -> ca.MX:
         """phi at a symbolic standardised input xs (>= k rows), shape (t, 1)."""
-        z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), xs[:self.k]) + ca.DM(np.asarray(self.offset))
-        return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j])) / float(self.scale[j])
-                            for j, kind in enumerate(self.shapes)])
+        return self.features.casadi(xs[:self.k])
 
     @classmethod
-    def from_original_units(cls, features, x_mean: np.ndarray, x_scale: np.ndarray, log_var: float) -> "FeatureTrend":
-        """The trend of ungated :class:`~microctl.gp.shaped_features.ShapedFeatures` (maps of x in
-        original units, their ``scale``) on the standardisation ``xs = (x - x_mean) / x_scale`` of
-        the kernel's k = len(x_mean) inputs."""
+    def from_original_units(cls, features: ShapedFeatures, x_mean: np.ndarray, x_scale: np.ndarray,
+                            log_var: float) -> "FeatureTrend":
+        """The trend of ungated features of x in original units (their ``scale`` kept) on the
+        standardisation ``xs = (x - x_mean) / x_scale`` of the kernel's k = len(x_mean) inputs."""
         A = np.asarray(features.matrix, dtype=float)
         k = len(x_mean)
-        if A.shape[1] < k or np.any(A[:, k:] != 0):
-            raise ConfigError(f"feature trend: features on {A.shape[1]} inputs, of which only the first {k} may be read")
+        if A.shape[1] < k or np.any(A[:, k:] != 0) or features.gate is not None:
+            raise ConfigError(f"feature trend: features on {A.shape[1]} inputs, of which only the first {k} may be "
+                              "read, and no gate")
         A = A[:, :k]
-        return cls(A * np.asarray(x_scale, dtype=float), np.asarray(features.offset, dtype=float) + A @ x_mean,
-                   tuple(features.shapes), np.asarray(features.params, dtype=float).reshape(-1, 2),
-                   np.asarray(features.scale, dtype=float), tuple(features.names), float(log_var))
+        std = ShapedFeatures(A * np.asarray(x_scale, dtype=float), np.asarray(features.offset, dtype=float) + A @ x_mean,
+                             tuple(features.shapes), np.asarray(features.params, dtype=float).reshape(-1, 2),
+                             np.asarray(features.scale, dtype=float), tuple(features.names))
+        return cls(std, float(log_var))

@@ -22,17 +22,26 @@ UNGATED = tuple(k for k in SHAPES if k not in GATED)
 def _trend(rng, k=4, log_var=0.3):
     t = len(UNGATED)
     params = np.column_stack([rng.uniform(0.5, 2, t), rng.uniform(0.5, 2, t)])
-    return FeatureTrend(rng.normal(size=(t, k)), rng.normal(size=t), UNGATED, params, rng.uniform(0.5, 2, t),
-                        tuple(f"f{j}" for j in range(t)), log_var)
+    return FeatureTrend(ShapedFeatures(rng.normal(size=(t, k)), rng.normal(size=t), UNGATED, params,
+                                       rng.uniform(0.5, 2, t), tuple(f"f{j}" for j in range(t))), log_var)
 
 
 def test_trend_values_are_the_shaped_features_of_the_same_maps():
-    """Independent answer: ShapedFeatures (the noise dictionary's implementation) on the same maps."""
+    """Independent answer: each shape's formula written out here, on the same maps."""
     rng = np.random.default_rng(0)
     tr = _trend(rng)
-    sf = ShapedFeatures(tr.matrix, tr.offset, tr.shapes, tr.params, tr.scale, tr.names)
+    f = tr.features
     X = rng.normal(size=(30, 4))
-    np.testing.assert_allclose(tr.values(X), sf.values(X), rtol=1e-13, atol=1e-13)
+    Z = X @ f.matrix.T + f.offset
+    a, b = f.params[:, 0], f.params[:, 1]
+    by_hand = {
+        "sq": Z**2, "abs": np.sqrt(Z**2 + a**2) - a, "sat": Z**2 / (Z**2 + a**2),
+        "up": Z**2 * (1 + np.tanh(Z / a)) / 2, "down": Z**2 * (1 - np.tanh(Z / a)) / 2,
+        "bump": np.exp(-((Z - a) ** 2) / (2 * b**2)), "exp": np.exp(Z),
+        "step": 1 / (1 + np.exp(-(np.sqrt(Z**2 + b**2) - a) / b)),
+    }
+    want = np.column_stack([by_hand[kind][:, j] for j, kind in enumerate(f.shapes)]) / f.scale
+    np.testing.assert_allclose(tr.values(X), want, rtol=1e-12, atol=1e-12)
     # columns beyond k (a move's context) are not read
     np.testing.assert_array_equal(tr.values(np.hstack([X, rng.normal(size=(30, 2))])), tr.values(X))
 
@@ -80,9 +89,14 @@ def test_kernel_with_trend_adds_v_phi_phi_and_casadi_equals_numpy():
 def test_trend_refuses_gated_shapes_and_mismatched_arrays():
     rng = np.random.default_rng(3)
     with pytest.raises(ConfigError, match="rev"):
-        FeatureTrend(np.ones((1, 2)), np.zeros(1), ("rev",), np.ones((1, 2)), np.ones(1), ("a",), 0.0)
+        FeatureTrend(ShapedFeatures(np.ones((1, 2)), np.zeros(1), ("rev",), np.ones((1, 2)), np.ones(1), ("a",),
+                                    np.ones((1, 2))), 0.0)
     with pytest.raises(ConfigError, match="do not match"):
-        FeatureTrend(rng.normal(size=(2, 3)), np.zeros(3), ("sq", "abs"), np.ones((2, 2)), np.ones(2), ("a", "b"), 0.0)
+        FeatureTrend(ShapedFeatures(rng.normal(size=(2, 3)), np.zeros(3), ("sq", "abs"), np.ones((2, 2)), np.ones(2),
+                                    ("a", "b")), 0.0)
+    with pytest.raises(ConfigError, match="log_var"):
+        FeatureTrend(ShapedFeatures(np.ones((1, 2)), np.zeros(1), ("sq",), np.zeros((1, 2)), np.ones(1), ("a",)),
+                     math.inf)
 
 
 def _shift_data(rng, n):
