@@ -74,7 +74,8 @@ def _standardise(X: np.ndarray, y: np.ndarray) -> dict:
             "y_scale": y_scale, "Xs": Xs, "ys": ys}
 
 
-#: Prior variance of f's feature-trend coefficients when ``linear_prior_var`` is None (fitted).
+#: Prior variance of f's feature-trend coefficients (fixed; standardised outputs per unit of a
+#: feature scaled to its training mean: the vague limit, as :data:`~microctl.models.training.LINEAR_PRIOR_VAR`).
 TREND_PRIOR_VAR = 10.0
 
 
@@ -113,8 +114,8 @@ class VHGPR:
     mean_features : ShapedFeatures, optional
         Fixed features of f's feature trend (:mod:`microctl.gp.trend`), ungated maps of the
         inputs the kernels read in their original units, each rescaled to its mean over the
-        training inputs here; their coefficients' prior variance is ``linear_prior_var`` (10
-        when None). None (default): no trend of features.
+        training inputs here; their coefficients' prior variance is :data:`TREND_PRIOR_VAR`.
+        None (default): no trend of features.
     noise_features : NoiseFeatures, optional
         Features of a parametric prior mean of g (:mod:`microctl.gp.noise_prior` eq. 1), in the
         units of the inputs and of y. None (default): the paper's constant mu0.
@@ -198,6 +199,8 @@ class VHGPR:
             raise ConfigError(f"VHGPR: tol must be positive, got {tol!r}")
         if max_time is not None and not (max_time > 0):
             raise ConfigError(f"VHGPR: max_time must be positive or None, got {max_time!r}")
+        if mean_features is not None and not isinstance(mean_features, ShapedFeatures):
+            raise ConfigError(f"VHGPR: mean_features must be a ShapedFeatures or None, got {type(mean_features).__name__}")
         if noise_features is not None and not isinstance(noise_features, NoiseFeatures):
             raise ConfigError(f"VHGPR: noise_features must be a NoiseFeatures or None, got {type(noise_features).__name__}")
         if linear_prior_var is not None and not (isinstance(linear_prior_var, (int, float))
@@ -429,7 +432,8 @@ class VHGPR:
                          "n_restarts": self.n_restarts, "g_start": self.g_start,
                          "max_iter": max_iter, "random_state": self.random_state, "tol": self.tol,
                          "max_time": self.max_time,
-                         "noise_features": None if nf is None else list(nf.names)},
+                         "noise_features": None if nf is None else list(nf.names),
+                         "mean_features": None if self.mean_features is None else list(self.mean_features.names)},
         }
 
     def _optimise(self, x_init: np.ndarray, Xs: np.ndarray, ys: np.ndarray, layout: Layout,
