@@ -16,6 +16,7 @@ import json
 import math
 import re
 import zipfile
+from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +43,6 @@ FORMAT_VERSION = 5
 READABLE_VERSIONS = (1, 2, 3, 4, 5)
 #: The arrays of f's feature trend (all or none).
 TREND_ARRAYS = ("f_trend_matrix", "f_trend_offset", "f_trend_params", "f_trend_scale")
-#: Optional floats a file of version < 5 does not have.
-OPTIONAL_SINCE_5 = ("f_trend_log_var",)
 #: The posterior forms (:class:`~microctl.gp.fitted.FittedVHGPR` ``posterior_form``).
 POSTERIOR_FORMS = ("exact", "sparse")
 
@@ -142,7 +141,9 @@ def read_model(cls: type, path: str | Path) -> Any:
     path = Path(path)
     data = _read_arrays(path)
     _check_version(path, data)
-    needed = cls.stored("array") + cls.stored("float") + cls.stored("optional_float") + ("meta_json",)
+    added_later = _defaults(cls)  # optional floats a file written before they existed lacks
+    needed = (cls.stored("array") + cls.stored("float")
+              + tuple(n for n in cls.stored("optional_float") if n not in added_later) + ("meta_json",))
     missing = [k for k in needed if k not in data]
     if missing:
         raise DataError(f"{path}: model file is missing array(s) {', '.join(repr(m) for m in missing)}")
@@ -196,6 +197,11 @@ def _check_version(path: Path, data: dict) -> None:
                         f"longer supported (the linear trend is now part of f's kernel); retrain it")
 
 
+def _defaults(cls: type) -> dict[str, Any]:
+    """The fields of ``cls`` with a default (added to the file format after its first version)."""
+    return {f.name: f.default for f in fields(cls) if f.default is not MISSING}
+
+
 def _fields_from(cls: type, data: dict) -> dict[str, Any]:
     """The constructor arguments of ``cls`` from the arrays (ValueError/KeyError/TypeError if malformed)."""
     kw: dict[str, Any] = {}
@@ -203,9 +209,10 @@ def _fields_from(cls: type, data: dict) -> dict[str, Any]:
         kw[name] = np.asarray(data[name], dtype=np.float64)
     for name in cls.stored("float"):
         kw[name] = float(data[name])
+    added_later = _defaults(cls)
     for name in cls.stored("optional_float"):
-        if name in OPTIONAL_SINCE_5 and name not in data:  # a file written before the field existed
-            kw[name] = None
+        if name not in data and name in added_later:  # a field added after the file was written
+            kw[name] = added_later[name]
             continue
         v = np.asarray(data[name], dtype=np.float64).ravel()
         if v.size > 1:

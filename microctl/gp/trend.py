@@ -89,16 +89,6 @@ class FeatureTrend:
         if not math.isfinite(self.log_var):
             raise ConfigError("feature trend: log_var must be finite")
 
-    def __eq__(self, other: object) -> bool:  # by value (kernel specs compare their trends)
-        if not isinstance(other, FeatureTrend):
-            return NotImplemented
-        a, b = self.features, other.features
-        return (a.shapes == b.shapes and a.names == b.names and self.log_var == other.log_var
-                and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in
-                        ((a.matrix, b.matrix), (a.offset, b.offset), (a.params, b.params), (a.scale, b.scale))))
-
-    __hash__ = None  # type: ignore[assignment]
-
     @property
     def t(self) -> int:
         """Number of features."""

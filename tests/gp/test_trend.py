@@ -150,3 +150,22 @@ def test_a_model_file_with_half_a_trend_is_refused_naming_the_arrays(tmp_path):
     np.savez(tmp_path / "half.npz", **arrays)
     with pytest.raises(DataError, match="f_trend_scale"):
         FittedVHGPR.load(tmp_path / "half.npz")
+
+
+def test_a_file_without_the_trends_fields_reads_as_a_model_without_trend_but_a_missing_bias_is_refused(tmp_path):
+    """A file written before version 5 has no ``f_trend_log_var``: it reads as None (the field's
+    default). An optional float without a default (``f_log_bias_var``) stays required."""
+    rng = np.random.default_rng(6)
+    X, y, _ = _shift_data(rng, 30)
+    m = VHGPR(linear=(0, 1, 2), linear_prior_var=10.0, noise_model="hgp", n_restarts=1, g_start="f", se="on",
+              max_iter=20).fit(X, y)
+    m.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(tmp_path / "old.npz", **{k: v for k, v in arrays.items() if k != "f_trend_log_var"})
+    old = FittedVHGPR.load(tmp_path / "old.npz")
+    assert old.f_trend_log_var is None and old.f_trend is None
+    np.testing.assert_array_equal(old.predict(X).f_mean, m.predict(X).f_mean)
+    np.savez(tmp_path / "nobias.npz", **{k: v for k, v in arrays.items() if k != "f_log_bias_var"})
+    with pytest.raises(DataError, match=r"nobias\.npz.*'f_log_bias_var'"):
+        FittedVHGPR.load(tmp_path / "nobias.npz")
