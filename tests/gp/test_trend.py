@@ -169,3 +169,11 @@ def test_a_file_without_the_trends_fields_reads_as_a_model_without_trend_but_a_m
     np.savez(tmp_path / "nobias.npz", **{k: v for k, v in arrays.items() if k != "f_log_bias_var"})
     with pytest.raises(DataError, match=r"nobias\.npz.*'f_log_bias_var'"):
         FittedVHGPR.load(tmp_path / "nobias.npz")
+
+
+def test_mean_features_of_the_wrong_type_or_reading_beyond_the_kernels_inputs_are_refused():
+    with pytest.raises(ConfigError, match="mean_features must be a ShapedFeatures or None, got dict"):
+        VHGPR(mean_features={"step": 1})
+    f = ShapedFeatures(np.array([[1.0, 0.0, 0.0, 2.0]]), np.zeros(1), ("sq",), np.zeros((1, 2)), np.ones(1), ("c",))
+    with pytest.raises(ConfigError, match="only the first 3 may be read"):
+        FeatureTrend.from_original_units(f, np.zeros(3), np.ones(3), 0.0)
