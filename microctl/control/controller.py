@@ -55,11 +55,21 @@ from microctl.util.blas import single_thread_blas
 #: Two commands closer than this on every actuator (µm) are the same command (the least-motion
 #: rule then returns eq. 4's optimum without comparing).
 SAME_COMMAND_UM = 1e-6
+#: How a result's ``choice`` begins when the least-motion rule returned the least motion instead
+#: of eq. 4's optimum (:func:`returned_least_motion` reads it back, e.g. for the experiment's report).
+LEAST_MOTION_CHOICE = "least motion:"
 
 __all__ = [
     "ControllerSettings", "ControlResult", "Controller", "EAFMController", "OptimalController", "AFMController",
     "EAFMMeanController", "RedundantSet", "NoiseComparison", "NoiseVariance", "compare_noise", "with_baseline",
+    "LEAST_MOTION_CHOICE", "returned_least_motion",
 ]
+
+
+def returned_least_motion(choice: str) -> bool:
+    """Whether a result's ``choice`` says the least-motion rule returned the least motion (not eq. 4's
+    optimum; :attr:`ControllerSettings.prefer_least_motion`)."""
+    return str(choice).startswith(LEAST_MOTION_CHOICE)
 
 
 class EAFMController(BaseController):
@@ -402,7 +412,7 @@ class OptimalController(EAFMController):
                else f"not better once the sources the data did not select are weighed in (expected squared "
                     f"error {r_opt:.3g} vs {r_least:.3g} µm², they add {excess:+.3g} µm² to the difference)")
         out = self._result(res.state, res.target_um, least.u, least.status, True, t0)
-        return replace(out, choice=f"least motion: eq. 4's optimum {why}")
+        return replace(out, choice=f"{LEAST_MOTION_CHOICE} eq. 4's optimum {why}")
 
 
 class EAFMMeanController(EAFMController):

@@ -24,6 +24,7 @@ import yaml
 from scipy.special import ndtr
 
 import microctl.experiments.controllers as registry
+from microctl.control.controller import returned_least_motion
 from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
@@ -64,6 +65,26 @@ def _ratio(x: float, y: float) -> float | None:
     return x / y if y != 0 and math.isfinite(x) and math.isfinite(y) else None
 
 
+def least_motion_trials(choice: Any) -> list[int] | None:
+    """Per target, in how many trials the controller's least-motion rule returned the least motion
+    instead of eq. 4's optimum (:func:`~microctl.control.controller.returned_least_motion`).
+
+    Parameters
+    ----------
+    choice : list of list of str, shape (trials, targets), or None
+        Each result's ``choice`` (empty for a controller without the rule).
+
+    Returns
+    -------
+    list of int, length targets, or None
+        None when no result has a choice (a controller without the rule, or a results file
+        written before the choices were kept).
+    """
+    if not choice or not any(c for row in choice for c in row):
+        return None
+    return [sum(returned_least_motion(row[j]) for row in choice) for j in range(len(choice[0]))]
+
+
 def incremental_stats(inc: dict) -> dict:
     """Table II and the tests from the incremental run (see the module docstring)."""
     targets = np.asarray(inc["targets_um"], dtype=float)
@@ -79,6 +100,9 @@ def incremental_stats(inc: dict) -> dict:
             "solve_time_s": {"mean": float(np.nanmean(r["solve_time_s"])), "max": float(np.nanmax(r["solve_time_s"]))},
             "fallbacks_to_afm": int(r["fallbacks"]),
         }
+        least = least_motion_trials(r.get("choice"))
+        if least is not None:  # each result's choice (trials x targets) and the count per target
+            c["choice"], c["least_motion_trials"] = r["choice"], least
         if np.any(np.isfinite(r["prob_quieter_than_afm"])):
             # P(noise at the chosen pose < at the AFM baseline's), per trial and target (the EAFM's posterior)
             c["prob_quieter_than_afm"] = r["prob_quieter_than_afm"]
@@ -342,6 +366,21 @@ def table_ii_lines(inc: dict) -> list[str]:
     return L
 
 
+def least_motion_lines(inc: dict) -> list[str]:
+    """Per controller with the least-motion rule, how often it returned the least motion (target by
+    target): where its VSSE exceeds the oracle's, this says whether the rule or eq. 4's optimum chose."""
+    L = []
+    for name, c in inc["controllers"].items():
+        least = c.get("least_motion_trials")
+        if least is None:
+            continue
+        per = ", ".join(f"{t:g} µm: {k}" for t, k in zip(inc["targets_um"], least))
+        L.append(f"{registry.label(name)} returned the least motion instead of eq. 4's optimum (not credibly better; "
+                 f"docs/controller.md, the least-motion rule) in this many of the {inc['trials']} trials per target: "
+                 f"{per}.")
+    return ([""] + L) if L else []
+
+
 def incremental_section(results: dict, level: int = 2) -> list[str]:
     """The incremental experiment: Table II, accuracy against zero, scale against the paper, tests."""
     inc = results.get("incremental")
@@ -377,6 +416,7 @@ def incremental_section(results: dict, level: int = 2) -> list[str]:
         L.append(f"| {row['target_um']:g} µm | {_f(bf and bf['p_value'], 4)} | {_f(we and we['p_value'], 4)} | "
                  f"{_f(bo and bo['p_value'], 4)} | {_f(row.get('eafm_msse_over_se'), 2)} | "
                  f"{'no (within 2 SE)' if row['eafm_msse_within_2se'] else 'yes (beyond 2 SE)'} |")
+    L += least_motion_lines(inc)
     fb = {n: c["fallbacks_to_afm"] for n, c in inc["controllers"].items() if c["fallbacks_to_afm"]}
     if fb:
         L += ["", f"Solver failures replaced by the AFM command: {fb}."]

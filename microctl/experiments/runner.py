@@ -353,6 +353,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                   "prob_quieter_than_afm", "credibly_quieter_than_afm")}
             r["q_um"] = np.full((T, J, afm.n_q), np.nan)
             r["status"] = [[""] * J for _ in range(T)]
+            r["choice"] = [[""] * J for _ in range(T)]  # which pose the least-motion rule returned, and why
             r["fallbacks"] = 0
             carries = afm.memory.active and not spec.needs_truth
             for k in range(T):
@@ -388,6 +389,7 @@ def _incremental(run: _Run, eafm: EAFM) -> dict:
                         r["solve_time_s"][k, j] = sol.solve_time_s
                         r["q_um"][k, j] = sol.q
                         r["status"][k][j] = sol.status
+                        r["choice"][k][j] = sol.choice
                         if sol.vs_baseline is not None:
                             r["prob_quieter_than_afm"][k, j] = sol.vs_baseline.prob_quieter
                             r["credibly_quieter_than_afm"][k, j] = float(sol.vs_baseline.credible)

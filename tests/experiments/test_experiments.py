@@ -83,6 +83,28 @@ def test_results_fields(quick_run):
     assert (out / "fig5_absolute.png").is_file() and (out / "fig6_incremental.png").is_file()
 
 
+def test_least_motion_counts_match_the_choices(quick_run):
+    """results.json keeps each EAFM result's choice; the per-target least-motion counts are those of
+    the choices (recounted here from the strings), the report states them, and controllers without
+    the rule have neither."""
+    from microctl.experiments.report import least_motion_trials
+
+    out, res = quick_run
+    ctrls = res["incremental"]["controllers"]
+    for name in ("afm", "oracle"):
+        assert "least_motion_trials" not in ctrls[name] and "choice" not in ctrls[name]
+    choice = ctrls["eafm"]["choice"]
+    assert len(choice) == 3 and all(len(row) == 2 and all(c for c in row) for row in choice)
+    assert ctrls["eafm"]["least_motion_trials"] == [sum(row[j].startswith("least motion:") for row in choice)
+                                                    for j in range(2)]
+    assert "returned the least motion instead of eq. 4's optimum" in (out / "report.md").read_text()
+    # the counting itself, on hand-made choices (2 trials x 3 targets)
+    made = [["least motion: eq. 4's optimum better with P = 0.9 < 0.95", "optimum: it is the least motion", ""],
+            ["least motion: eq. 4's optimum not better once ...", "optimum: credibly better than the least motion", ""]]
+    assert least_motion_trials(made) == [2, 0, 0]
+    assert least_motion_trials([["", ""], ["", ""]]) is None and least_motion_trials(None) is None
+
+
 def test_msse_recomputed_from_logs(quick_run):
     out, res = quick_run
     stage = load_stage_config(STAGE).stage
