@@ -148,7 +148,7 @@ def read_model(cls: type, path: str | Path) -> Any:
     if missing:
         raise DataError(f"{path}: model file is missing array(s) {', '.join(repr(m) for m in missing)}")
     try:
-        kw = _fields_from(cls, data)
+        kw = _fields_from(cls, data, added_later)
     except (TypeError, ValueError, KeyError) as exc:
         raise DataError(f"{path}: malformed model file: {exc}") from None
     _check_shapes(path, kw, cls.shapes())
@@ -202,14 +202,14 @@ def _defaults(cls: type) -> dict[str, Any]:
     return {f.name: f.default for f in fields(cls) if f.default is not MISSING}
 
 
-def _fields_from(cls: type, data: dict) -> dict[str, Any]:
-    """The constructor arguments of ``cls`` from the arrays (ValueError/KeyError/TypeError if malformed)."""
+def _fields_from(cls: type, data: dict, added_later: dict[str, Any]) -> dict[str, Any]:
+    """The constructor arguments of ``cls`` from the arrays (ValueError/KeyError/TypeError if malformed);
+    an optional float of ``added_later`` (:func:`_defaults`) that the file lacks gets its default."""
     kw: dict[str, Any] = {}
     for name in cls.stored("array"):
         kw[name] = np.asarray(data[name], dtype=np.float64)
     for name in cls.stored("float"):
         kw[name] = float(data[name])
-    added_later = _defaults(cls)
     for name in cls.stored("optional_float"):
         if name not in data and name in added_later:  # a field added after the file was written
             kw[name] = added_later[name]
