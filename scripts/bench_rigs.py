@@ -33,6 +33,8 @@ Methods (columns):
 - ``default``: today's defaults (the noise dictionary, selected by the data; f's variance in
   the objective; the least-motion rule);
 - ``eq4``: the default without the least-motion rule (eq. 4's optimum always);
+- ``credible``: the default with the previous release's least-motion rule (the optimum also
+  better with posterior probability >= ``credible_level``: ``least_motion_credible``);
 - ``weighed``: the default with the unselected sources' model-averaged variance in eq. 4's
   objective (``weigh_alternatives``);
 - ``noise_only``: today's model with the previous objective (no f variance);
@@ -133,6 +135,9 @@ METHODS = {
     # the default without the least-motion rule (microctl.control.credible): eq. 4's optimum always,
     # the default before issue 18's least-motion change
     "eq4": Method("eq4", "covering", ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),
+    # the default with the previous release's least-motion rule: the optimum also had to be better
+    # with posterior probability >= credible_level (microctl.control.credible)
+    "credible": Method("credible", "covering", ResidualModelSettings(), ControllerSettings(least_motion_credible=True)),
     # the default with the unselected noise sources' model-averaged variance in eq. 4's objective
     # (microctl.models.alternatives)
     "weighed": Method("weighed", "covering", ResidualModelSettings(), ControllerSettings(weigh_alternatives=True)),

@@ -19,13 +19,14 @@ Sections (``--only`` picks some; default: all, in this order):
     the paper-scale rig, its Table II and, per seed offset, whether its AFM errors keep the
     paper's size and grow with the target (``--jobs`` seed sets at a time).
 ``bench_rigs``
-    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,eq4
+    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,credible
     --seed-sets 10 --jobs 2`` (the main job over 10 seed sets, and 12 rigs of every noise family
     of scripts/rig_families.py at 125 and 200 training moves, with the default controller and
-    without its least-motion rule; ``docs/generated/bench_rigs.md``), then the held-out rigs
+    with the previous release's least-motion rule; ``docs/generated/bench_rigs.md``), then the held-out rigs
     ``--seed 100`` with the default method (:data:`BENCH_RIGS_HELD_OUT_ARGS`).
     The longest (about an hour on a loaded 2-core machine); add ``physical,noise_only`` to
-    ``--methods`` for the previous noise model and objective side by side.
+    ``--methods`` for the previous noise model and objective side by side, ``eq4`` for the
+    controller without the least-motion rule.
 ``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``
     The other benchmark scripts with the arguments the docs quote; their printed tables are
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
@@ -60,7 +61,7 @@ PAPER_SCALE = "configs/experiments/paper_scale.yaml"
 #: Seed offsets the paper-scale rig is also measured on (besides the shipped seeds, offset 0).
 PAPER_SCALE_OFFSETS = tuple(10_000 * k for k in range(1, 10))
 #: The bench_rigs run the docs quote (``--jobs`` is taken from reproduce.py's own option).
-BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods", "default,eq4",
+BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods", "default,credible",
                    "--seed-sets", "10")
 #: The held-out rigs of the same page: seeds 100..111 of every family, which no method change was
 #: measured on before they were added (every earlier choice was judged on seeds 0..11 above).

@@ -337,12 +337,13 @@ class OptimalController(EAFMController):
         whether the chosen pose is credibly quieter than the baseline's (``vs_baseline``).
 
         With ``settings.prefer_least_motion`` the smallest motion onto the EAFM-mean surface is
-        returned unless eq. 4's optimum is credibly better (:mod:`microctl.control.credible`);
-        ``choice`` of the result says which was returned and why.
+        returned unless eq. 4's optimum has the lower expected squared error once the unselected
+        noise sources are weighed in (and, with ``settings.least_motion_credible``, credibly so;
+        :mod:`microctl.control.credible`); ``choice`` of the result says which was returned and why.
         """
         res = super().solve(target_um, state, u_init=u_init)
         if self.settings.prefer_least_motion:
-            res = self._unless_credible(res, u_init)
+            res = self._unless_better(res, u_init)
         if self.baseline is None:
             return res
         return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)
@@ -377,40 +378,40 @@ class OptimalController(EAFMController):
             return None
         return least if least.success else None
 
-    def _unless_credible(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult:
-        """``res`` if its pose is credibly better than the least motion's, else the least motion
-        (reported as this controller's result: eq. 4's objective at it).
+    def _unless_better(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult:
+        """``res`` if its pose is better than the least motion's (the settings' test), else the least
+        motion (reported as this controller's result: eq. 4's objective at it).
 
-        The comparison is made with :meth:`_least_start` when there is one (the exact least motion
-        differs from it to second order in f, which does not move the decision); the exact least
-        motion is polished only when it is returned.
+        The comparison is made with the least motion that would be returned (polished from
+        :meth:`_least_start`): the start alone, the AFM's least motion moved along w onto the
+        surface, can differ from it by tenths of a µm where f bends the surface, and a decision
+        by expected squared error can turn on that.
         """
         t0 = time.perf_counter() - res.solve_time_s
         with single_thread_blas():
             start, approx = self._least_start(res)
-            least = None if approx is not None else self._least_motion(res, start, u_init)
-            if approx is None and least is None:
+            least = self._least_motion(res, approx if approx is not None else start, u_init)
+            if least is None:
                 return res
-            u_least = approx if approx is not None else least.u
+            u_least = least.u
             if np.max(np.abs(self.afm.K @ (res.u - u_least))) <= SAME_COMMAND_UM:
                 return replace(res, choice="optimum: it is the least motion",
                                solve_time_s=time.perf_counter() - t0)
             p, r_opt, r_least = prob_better(self.eafm, res.state, res.u, u_least)
             excess = self.eafm.alternatives.expected_excess(res.state, res.u, u_least)
-            if p >= self.settings.credible_level and r_opt + excess < r_least:
-                return replace(res, choice=f"optimum: credibly better than the least motion (P = {p:.3f}; expected "
-                                           f"squared error {r_opt:.3g} vs {r_least:.3g} µm², the unselected "
-                                           f"sources add {excess:+.3g} µm² to the difference)",
+            credible = p >= self.settings.credible_level or not self.settings.least_motion_credible
+            lower = r_opt + excess < r_least
+            if credible and lower:
+                return replace(res, choice=f"optimum: lower expected squared error than the least motion ({r_opt:.3g} vs "
+                                           f"{r_least:.3g} µm², the unselected sources add {excess:+.3g} µm² to the "
+                                           f"difference; P = {p:.3f})",
                                solve_time_s=time.perf_counter() - t0)
-            if least is None:
-                least = self._least_motion(res, approx, u_init)
-                if least is None:
-                    return res
         self._last_attempts = {"status": [least.status], "iter": res.iterations + least.iterations,
                                "n": res.n_starts + least.n_starts}
-        why = (f"better with P = {p:.3f} < {self.settings.credible_level:g}" if p < self.settings.credible_level
+        why = (f"better with P = {p:.3f} < {self.settings.credible_level:g}" if not credible
                else f"not better once the sources the data did not select are weighed in (expected squared "
-                    f"error {r_opt:.3g} vs {r_least:.3g} µm², they add {excess:+.3g} µm² to the difference)")
+                    f"error {r_opt:.3g} vs {r_least:.3g} µm², they add {excess:+.3g} µm² to the difference; "
+                    f"P = {p:.3f})")
         out = self._result(res.state, res.target_um, least.u, least.status, True, t0)
         return replace(out, choice=f"{LEAST_MOTION_CHOICE} eq. 4's optimum {why}")
 

@@ -25,10 +25,12 @@ model, the expected extra squared error of pose a over pose b is
 
     E = sum_j w_j c_j (phi_j(a) - phi_j(b)) / (1 + sum_j w_j),
 
-and the optimum a counts as credibly better than the least motion b only if the probability
-above reaches ``credible_level`` *and* ``r_a + E < r_b`` (E = ``EAFM.alternatives.expected_excess``,
-:class:`~microctl.models.alternatives.Alternatives`, re-exported here). A model
-file written before the alternatives were stored has no such term.
+and the optimum a is returned instead of the least motion b only if ``r_a + E < r_b``: the lower
+posterior expected squared error, averaged over the noise models (E =
+``EAFM.alternatives.expected_excess``, :class:`~microctl.models.alternatives.Alternatives`,
+re-exported here). With ``ControllerSettings.least_motion_credible`` the probability above must
+also reach ``credible_level`` (the previous release's rule). A model file written before the
+alternatives were stored has no E term.
 
 Why the controller asks (``ControllerSettings.prefer_least_motion``): where the noise model has
 no evidence that one redundant pose is quieter than another, eq. 4's optimum is decided by which
@@ -36,8 +38,12 @@ pose the training data cover best (g's and f's posterior variance are smallest t
 can be a pose far from where the actuators are, a long move for a gain the model itself cannot
 tell from zero. Nearly every piezo scatter source that depends on the move grows with the
 distance moved (stick-slip, creep, stiction past breakaway, the turning point of a hysteresis
-loop), so the smallest motion onto the EAFM-mean surface is the safe default, and the optimum
-is taken only when the model is credible that it is better.
+loop), and E carries those the data did not select, so a long move must buy its gain against
+them. Why not the probability as well: it is low wherever g's posterior at either pose is wide,
+also where the data show that the least motion is the noisy one (a stick-slip actuator near a
+ball's touchdown, the paper-scale rig), and there the least motion is the wrong default
+(measured over the rig families and the paper-scale rig: ``scripts/bench_rigs.py --methods
+default,credible``, docs/generated/bench_rigs.md and docs/generated/paper_scale.md).
 """
 
 from __future__ import annotations

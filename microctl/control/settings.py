@@ -34,11 +34,16 @@ class ControllerSettings:
         baseline's (:func:`~microctl.control.baseline.compare_noise`).
     prefer_least_motion : bool
         The optimal controller returns the smallest actuator motion onto the EAFM-mean surface
-        (:class:`~microctl.control.controller.EAFMMeanController`) unless eq. 4's optimum is
-        credibly better: its expected squared error (f's variance plus the noise variance) lower
-        with posterior probability >= ``credible_level``, and still lower once the noise sources
-        the data did not select are weighed in (:mod:`microctl.control.credible`). Default true;
-        false: eq. 4's optimum always (the paper's rule).
+        (:class:`~microctl.control.controller.EAFMMeanController`) unless eq. 4's optimum has the
+        lower expected squared error (f's variance plus the noise variance, its posterior mean)
+        once the noise sources the data did not select are weighed in
+        (:mod:`microctl.control.credible`). Default true; false: eq. 4's optimum always (the
+        paper's rule).
+    least_motion_credible : bool
+        With ``prefer_least_motion``, also require that the optimum's expected squared error is
+        lower with posterior probability >= ``credible_level`` (default false; true is the rule
+        of the previous release, which kept the least motion wherever g's posterior at the two
+        poses is wide, also where the optimum is in truth much quieter).
     weigh_alternatives : bool
         Add to eq. 4's r_e the model-averaged extra variance of the noise sources the data did
         not select (:mod:`microctl.models.alternatives`): the optimum then weighs a plausible
@@ -77,6 +82,7 @@ class ControllerSettings:
     epistemic: bool = same_setting(NoiseVariance, "epistemic")
     credible_level: float = setting(0.95, lo=0.5, hi=1.0, lo_open=True)
     prefer_least_motion: bool = setting(True)
+    least_motion_credible: bool = setting(False)
     weigh_alternatives: bool = setting(False)
     grid: int = setting(15, lo=2, hi=201)
     newton_steps: int = setting(4, lo=1, hi=50)
