@@ -94,7 +94,11 @@ Every family except ``clean`` also has a driver scatter of 0.01 µm per actuator
     same direction are repeatable. sigma_i = r_i (1 - exp(-|dq_i| / 0.5)) if sign(dq_i) is
     opposite to the actuator's last direction of motion (a held actuator keeps its direction;
     the zero state counts as approached "up"), else 0; on 1 or 2 random actuators,
-    r_i ~ U(0.1, 0.3).
+    r_i ~ U(0.1, 0.3). A step of at most ``HELD_UM`` (1e-6 µm, a picometre) holds the actuator:
+    commands computed in floating point differ from the previous ones by round-off where an
+    actuator is meant to stay, and a hysteresis loop does not turn round on a picometre (until
+    2026-11-28 any nonzero step did, so a held actuator's round-off of -1e-12 µm made the next
+    long step up a full reversal).
 ``stiction``
     Static friction with a breakaway threshold: small steps are taken up elastically by the
     ball contact (repeatable); once the step exceeds the breakaway travel the interface slips
@@ -152,6 +156,9 @@ CONTACTS_MM = ([15, 0, 5], [0, -15, 5], [-15, 0, 5], [0, 15, 5])
 TOOL_MM = [-40.957602214449594, 28.678821817552297, 10.0]
 STROKE_UM = 32.0
 DRIVER_STD_UM = 0.01
+#: A commanded step of at most this (µm) holds the actuator: it keeps its direction of motion and
+#: does not turn a hysteresis loop round (floating-point round-off of a held command).
+HELD_UM = 1e-6
 #: The contact set is trusted fixed when every ball's compression exceeds this many stds of
 #: its height scatter (else the moments come from Monte Carlo).
 CONTACT_MARGIN_SIGMAS = 4.5
@@ -418,8 +425,9 @@ class FamilyStage(StageBackend):
     # ---- physics of a batch of moves -------------------------------------------------
     def _directions(self, dq: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """New directions (m, n_q) and whether each move turns the actuator round."""
-        new = np.where(dq > 0.0, 1.0, np.where(dq < 0.0, -1.0, last))
-        return new, (dq != 0.0) & (new != last)
+        moved = np.abs(dq) > HELD_UM
+        new = np.where(moved, np.sign(dq), last)
+        return new, moved & (new != last)
 
     def _nominal(self, q: np.ndarray, direction: np.ndarray):
         """Actual positions, pose, reading and ball forces of the noise-free moves."""

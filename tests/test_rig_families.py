@@ -94,6 +94,19 @@ def test_family_noise_structures_do_what_they_say():
     assert sd[:3] == pytest.approx([0.02, 0.04, 0.08]) and sd[3] == 0.5
 
 
+def test_a_held_actuator_keeps_its_direction_through_round_off():
+    """A step of floating-point round-off (1e-12 µm either way) holds the actuator: it keeps its
+    direction and does not turn round (so the next step up is no reversal); a step of 1e-3 µm
+    down does turn it round, and an exact 0 keeps it, as the family's docstring says."""
+    st = rf.make_family_rig("reversal", 0).stage(1)
+    dq = np.array([[-1e-12, 1e-12, 0.0, -1e-3], [2.0, -2.0, 3.0, 5.0]])
+    last = np.array([[1.0, -1.0, -1.0, 1.0], [1.0, 1.0, 1.0, 1.0]])
+    new, turned = st._directions(dq, last)
+    np.testing.assert_array_equal(new, [[1.0, -1.0, -1.0, -1.0], [1.0, -1.0, 1.0, 1.0]])
+    np.testing.assert_array_equal(turned, [[False, False, False, True], [False, True, False, False]])
+    assert rf.HELD_UM == 1e-6
+
+
 def test_reading_level_structures_do_what_they_say():
     """The tilted gauge's variance follows the pose's tilt only; the hinge's slip follows the tilt
     change of the move only (a pure lift adds nothing), each by its docstring's formula."""
