@@ -288,8 +288,8 @@ def paper_scale_bars(runs: list[tuple[int, dict]]) -> list[str]:
           "commands, and the models' mean errors from the true mean; the measured values are beside them (the "
           "column \"true mean's PE below AFM\" shows how often a perfect model would pass a bar on the measured PE). "
           "\"EAFM trials on the least motion\": in how many of the incremental trials at each target the EAFM "
-          "controller returned the least motion because eq. 4's optimum was not credibly better "
-          "(docs/controller.md, the least-motion rule)."]
+          "controller returned the least motion because eq. 4's optimum was not better by the least-motion "
+          "rule's test (docs/controller.md)."]
     return L
 
 

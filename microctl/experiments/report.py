@@ -375,8 +375,8 @@ def least_motion_lines(inc: dict) -> list[str]:
         if least is None:
             continue
         per = ", ".join(f"{t:g} µm: {k}" for t, k in zip(inc["targets_um"], least))
-        L.append(f"{registry.label(name)} returned the least motion instead of eq. 4's optimum (not credibly better; "
-                 f"docs/controller.md, the least-motion rule) in this many of the {inc['trials']} trials per target: "
+        L.append(f"{registry.label(name)} returned the least motion instead of eq. 4's optimum (not better by the "
+                 f"least-motion rule's test, docs/controller.md) in this many of the {inc['trials']} trials per target: "
                  f"{per}.")
     return ([""] + L) if L else []
 
