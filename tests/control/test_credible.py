@@ -142,7 +142,7 @@ def test_without_a_credible_gain_the_least_motion_is_returned():
 def test_a_found_stick_slip_keeps_the_optimum():
     """Stick-slip of 0.1 µm per µm on PZT 2 (200 moves): the model finds it, and from every
     actuator at 16 µm a move of ±5 µm by eq. 4's optimum leaves PZT 2 where it is, while the
-    least motion moves it too; the optimum is credibly better and is returned."""
+    least motion moves it too; the optimum has the lower expected squared error and is returned."""
     afm, eafm = _flat_and_planted(0.1, 200, 4)
     assert eafm.model.info["noise_selection"]["selected"][0].startswith("dq2:")
     ctl = OptimalController(eafm, ControllerSettings(prefer_least_motion=True))

@@ -100,7 +100,7 @@ def test_least_motion_counts_match_the_choices(quick_run):
     assert "returned the least motion instead of eq. 4's optimum" in (out / "report.md").read_text()
     # the counting itself, on hand-made choices (2 trials x 3 targets)
     made = [["least motion: eq. 4's optimum better with P = 0.9 < 0.95", "optimum: it is the least motion", ""],
-            ["least motion: eq. 4's optimum not better once ...", "optimum: credibly better than the least motion", ""]]
+            ["least motion: eq. 4's optimum not better once ...", "optimum: lower expected squared error than the least motion", ""]]
     assert least_motion_trials(made) == [2, 0, 0]
     assert least_motion_trials([["", ""], ["", ""]]) is None and least_motion_trials(None) is None
 
