@@ -348,18 +348,20 @@ class OptimalController(EAFMController):
             return res
         return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)
 
-    def _least_start(self, res: ControlResult) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The AFM's least motion (a QP; None where the AFM does not reach the target) and the
-        same moved along w onto the EAFM-mean surface, the smallest motion onto that surface to
-        second order in f (None where that leaves the ranges, e.g. from a range's edge)."""
+    def _least_start(self, res: ControlResult) -> np.ndarray | None:
+        """Where to polish the least motion from: the AFM's least motion (a QP) moved along w onto
+        the EAFM-mean surface, the smallest motion onto that surface to second order in f; the
+        AFM's least motion itself where that leaves the ranges (e.g. from a range's edge); None
+        where the AFM does not reach the target."""
         if self._least is None:
             self._least = EAFMMeanController(self.eafm, self.settings)
             self._least_afm = AFMController(self.afm, self.settings)
         try:  # the AFM cannot reach every target the EAFM mean can
             start = self._least_afm.solve(res.target_um, res.state).u
         except SolveError:
-            return None, None
-        return start, self._least.surface.refine(res.state, start, res.target_um)
+            return None
+        moved = self._least.surface.refine(res.state, start, res.target_um)
+        return start if moved is None else moved
 
     def _least_motion(self, res: ControlResult, start: np.ndarray | None,
                       u_init: np.ndarray | None) -> ControlResult | None:
@@ -389,8 +391,7 @@ class OptimalController(EAFMController):
         """
         t0 = time.perf_counter() - res.solve_time_s
         with single_thread_blas():
-            start, approx = self._least_start(res)
-            least = self._least_motion(res, approx if approx is not None else start, u_init)
+            least = self._least_motion(res, self._least_start(res), u_init)
             if least is None:
                 return res
             u_least = least.u

@@ -155,9 +155,10 @@ def test_a_found_stick_slip_keeps_the_optimum():
         assert abs(r.q[1] - s[2]) < 0.1 and abs(m.q[1] - s[2]) > 0.4, (r.q, m.q)
 
 
-def _decision(eafm, s, t, credible: bool) -> bool:
-    """True where the rule should keep eq. 4's optimum, from the model's numbers computed here:
-    eq. 4's optimum (rule off) against the EAFM-mean controller's least motion."""
+def _decision(eafm, s, t, credible: bool) -> tuple[bool, float]:
+    """Whether the rule should keep eq. 4's optimum, from the model's numbers computed here (eq.
+    4's optimum, rule off, against the EAFM-mean controller's least motion), and the relative gap
+    of the expected squared errors from the tie."""
     opt = OptimalController(eafm, ControllerSettings(prefer_least_motion=False)).solve(t, s)
     least = EAFMMeanController(eafm, ControllerSettings()).solve(t, s)
     p, r_opt, r_least = prob_better(eafm, s, opt.u, least.u)
