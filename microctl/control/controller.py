@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import replace
+from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -64,6 +65,15 @@ __all__ = [
     "EAFMMeanController", "RedundantSet", "NoiseComparison", "NoiseVariance", "compare_noise", "with_baseline",
     "LEAST_MOTION_CHOICE", "returned_least_motion",
 ]
+
+
+class _Least(NamedTuple):
+    """The least motion the rule compares eq. 4's optimum with: its command and the solver's account."""
+
+    u: np.ndarray
+    status: str
+    iterations: int
+    n_starts: int
 
 
 def returned_least_motion(choice: str) -> bool:
@@ -247,6 +257,15 @@ class EAFMController(BaseController):
 
     def _polish(self, s: np.ndarray, target: float, starts: list[np.ndarray], t0: float,
                 prior: dict | None = None) -> ControlResult | None:
+        best = self._polish_best(s, target, starts, prior)
+        if best is None:
+            return None
+        return self._result(s, target, best[1], best[2], True, t0, objective=best[0])
+
+    def _polish_best(self, s: np.ndarray, target: float, starts: list[np.ndarray],
+                     prior: dict | None = None) -> tuple[float, np.ndarray, str] | None:
+        """Polish every start; the best passing the checks as (objective, u, status), or None.
+        The attempts (statuses, iterations, starts) are left in ``self._last_attempts``."""
         attempts = {"status": list(prior["status"]) if prior else [], "iter": prior["iter"] if prior else 0,
                     "n": prior["n"] if prior else 0}
         best: tuple[float, np.ndarray, str] | None = None
@@ -265,9 +284,7 @@ class EAFMController(BaseController):
             if best is None or j < best[0]:
                 best = (j, x, st["status"])
         self._last_attempts = attempts
-        if best is None:
-            return None
-        return self._result(s, target, best[1], best[2], True, t0, objective=best[0])
+        return best
 
     def _start(self, u0: np.ndarray, s: np.ndarray, target: float) -> tuple[np.ndarray, dict]:
         """One polish from ``u0``: the fast SQP when it converges (KKT-checked), else IPOPT from ``u0``
@@ -364,21 +381,23 @@ class OptimalController(EAFMController):
         return start if moved is None else moved
 
     def _least_motion(self, res: ControlResult, start: np.ndarray | None,
-                      u_init: np.ndarray | None) -> ControlResult | None:
+                      u_init: np.ndarray | None) -> _Least | None:
         """The smallest motion onto the EAFM-mean surface for ``res``'s target and state (None if
         none passes the checks). ``||K u - q_prev||^2`` is convex and the surface is the AFM's plane
         bent by f, so one polish from :meth:`_least_start` finds it; the EAFM-mean controller's
-        global seeding runs only when there is no start or its polish fails."""
-        t0 = time.perf_counter()
+        global seeding runs only when there is no start or its polish fails. Only the command and
+        the solver's account are kept: the result returned for it is this controller's (eq. 4's
+        objective), built only when the least motion is returned."""
         if start is not None:
-            least = self._least._polish(res.state, res.target_um, [start], t0)
-            if least is not None:
-                return least
+            best = self._least._polish_best(res.state, res.target_um, [start])
+            if best is not None:
+                at = self._least._last_attempts
+                return _Least(best[1], best[2], int(at.get("iter", 0)), int(at.get("n", 0)))
         try:
             least = self._least.solve(res.target_um, res.state, u_init=u_init)
         except SolveError:
             return None
-        return least if least.success else None
+        return _Least(least.u, least.status, least.iterations, least.n_starts) if least.success else None
 
     def _unless_better(self, res: ControlResult, u_init: np.ndarray | None) -> ControlResult:
         """``res`` if its pose is better than the least motion's (the settings' test), else the least

@@ -145,7 +145,7 @@ class NoiseVariance:
         cheap = seeding and U.shape[0] * float(eafm.n_train) ** 2 > CHEAP_SEEDING_WORK
         r = self.summary.at(eafm, s, U, self.kappa, cheap)
         if self.epistemic:
-            r = r + eafm.predict(s, U).f_var
+            r = r + eafm.f_var_np(s, U)
         if self.alternatives:
             r = r + eafm.alt_var(s, U)
         return r

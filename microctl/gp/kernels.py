@@ -38,7 +38,7 @@ import numpy as np
 
 from microctl.gp.trend import FeatureTrend
 
-__all__ = ["KernelSpec", "Kernel", "se_matrix", "ard_se"]
+__all__ = ["KernelSpec", "Kernel", "CrossTerms", "se_matrix", "ard_se"]
 
 
 def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float,
@@ -73,6 +73,22 @@ def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_
         sq[far] = 0.0
     sq *= math.exp(float(log_signal_var))
     return sq
+
+
+@dataclass(frozen=True)
+class CrossTerms:
+    """The training side of :meth:`Kernel.cross_grad`: inputs X (n, d) and weights (n,), the
+    scaled inputs Z = X / l (n, d) and their squared norms (n,), and the bias, linear (d,) and
+    trend (t,) parts' sums over the weights (None where the kernel has no such part)."""
+
+    X: np.ndarray
+    weights: np.ndarray
+    inv_ls: np.ndarray
+    Z: np.ndarray
+    z2: np.ndarray
+    bias: float
+    linear: np.ndarray | None
+    trend: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -243,7 +259,28 @@ class Kernel:
             out.append(v * np.einsum("ij,ij->j", X, G @ X))
         return np.concatenate(out)
 
-    def cross_grad(self, Xs: np.ndarray, X: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def cross_terms(self, X: np.ndarray, weights: np.ndarray) -> CrossTerms:
+        """What :meth:`cross_grad` computes from ``X`` and ``weights`` alone, computed once (a
+        fitted posterior's training inputs and weights do not change between calls).
+
+        Parameters
+        ----------
+        X : ndarray, shape (n, d)
+        weights : ndarray, shape (n,)
+        """
+        X = self._cols(X)
+        weights = np.asarray(weights, dtype=float)
+        inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        Z = X * inv_ls
+        v = self.linear_vars
+        return CrossTerms(
+            X=X, weights=weights, inv_ls=inv_ls, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
+            bias=self.bias_var * float(np.sum(weights)),
+            linear=None if v is None else (X * v).T @ weights,
+            trend=None if self.trend is None else self.trend.var * (self.trend.values(X).T @ weights))
+
+    def cross_grad(self, Xs: np.ndarray, X: np.ndarray | None, weights: np.ndarray | None,
+                   terms: CrossTerms | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``k(Xs, X) @ weights`` and its gradient in the rows of Xs (vectorised, for seeding).
 
         Parameters
@@ -251,6 +288,9 @@ class Kernel:
         Xs : ndarray, shape (m, d)
         X : ndarray, shape (n, d)
         weights : ndarray, shape (n,)
+        terms : CrossTerms, optional
+            :meth:`cross_terms` of ``X`` and ``weights``, computed once (then ``X`` and
+            ``weights`` are not read); the result is the same to the last bit.
 
         Returns
         -------
@@ -258,24 +298,29 @@ class Kernel:
         grad : ndarray, shape (m, d)
             Zero in the columns beyond the kernel's d.
         """
+        c = self.cross_terms(X, weights) if terms is None else terms
         width = np.asarray(Xs).shape[1]
-        Xs, X = self._cols(Xs), self._cols(X)
-        inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
-        K = self.se(Xs, X)
-        A = K * weights[None, :]
+        Xs = self._cols(Xs)
+        inv_ls = c.inv_ls
+        # the SE part as se_matrix computes it, with the training side precomputed
+        Zs = Xs * inv_ls
+        K = np.einsum("ij,ij->i", Zs, Zs)[:, None] + c.z2[None, :]
+        K -= 2.0 * (Zs @ c.Z.T)
+        np.maximum(K, 0.0, out=K)
+        K *= -0.5
+        np.exp(K, out=K)
+        K *= math.exp(float(self.log_signal_var))
+        A = K * c.weights[None, :]
         a = A.sum(axis=1)
         # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2
-        grad = -(a[:, None] * Xs - A @ X) * inv_ls * inv_ls
-        value = a + self.bias_var * float(np.sum(weights))
-        v = self.linear_vars
-        if v is not None:
-            lw = (X * v).T @ weights  # (d,)
-            value = value + Xs @ lw
-            grad = grad + lw[None, :]
-        if self.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
-            tw = self.trend.var * (self.trend.values(X).T @ weights)  # (t,)
-            value = value + self.trend.values(Xs) @ tw
-            grad = grad + np.einsum("j,mjk->mk", tw, self.trend.gradients(Xs))
+        grad = -(a[:, None] * Xs - A @ c.X) * inv_ls * inv_ls
+        value = a + c.bias
+        if c.linear is not None:
+            value = value + Xs @ c.linear
+            grad = grad + c.linear[None, :]
+        if c.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
+            value = value + self.trend.values(Xs) @ c.trend
+            grad = grad + np.einsum("j,mjk->mk", c.trend, self.trend.gradients(Xs))
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad

@@ -24,7 +24,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from microctl.gp.kernels import Kernel, se_matrix
+from microctl.gp.kernels import CrossTerms, Kernel, se_matrix
 from microctl.gp.linalg import tril_inverse
 from microctl.gp.noise_prior import LogVarianceMean
 
@@ -85,6 +85,7 @@ class Posterior:
         self._Lf_inv: ca.DM | None = None
         self._Lg_inv: ca.DM | None = None
         self._inv: dict[str, np.ndarray] = {}
+        self._f_cross: CrossTerms | None = None
 
     def chol_inverse(self, which: str) -> np.ndarray:
         """``L^-1`` of f's (``"f"``) or g's (``"g"``) Cholesky factor, shape (n, n), computed once:
@@ -128,10 +129,25 @@ class Posterior:
                 s2[sl] = kg.diag(xs[sl]) - np.einsum("ij,ij->j", v, v) + gm.variance(xs[sl])
         return a, c2, mu, s2
 
+    def f_var_std(self, xs: np.ndarray) -> np.ndarray:
+        """c*^2 alone (:meth:`predict_std`'s, unclipped, the same chunks and operations, so the same
+        to the last bit), shape (m,): f's variance without the O(m n^2) work of g's."""
+        m = xs.shape[0]
+        c2 = np.empty(m)
+        kf = self.f_kernel
+        chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
+        for start in range(0, m, chunk):
+            sl = slice(start, min(m, start + chunk))
+            v = self.chol_inverse("f") @ kf.matrix(xs[sl], self.X).T
+            c2[sl] = kf.diag(xs[sl]) - np.einsum("ij,ij->j", v, v)
+        return c2
+
     # ---- NumPy: vectorised forms (original units of y) -------------------------------------
     def f_mean_and_grad(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean of f, shape (m,), and its gradient in the original inputs, shape (m, d)."""
-        a, da = self.f_kernel.cross_grad(xs, self.X, np.asarray(self.f_alpha))
+        if self._f_cross is None:  # the training side, computed once (Kernel.cross_terms)
+            self._f_cross = self.f_kernel.cross_terms(self.X, np.asarray(self.f_alpha))
+        a, da = self.f_kernel.cross_grad(xs, None, None, terms=self._f_cross)
         f = self.y_mean + self.y_scale * a
         dx = self.y_scale * da / self.x_scale
         return f, dx

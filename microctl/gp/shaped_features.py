@@ -149,10 +149,16 @@ class ShapedFeatures:
             raise ConfigError(f"shaped noise features: gate {np.shape(self.gate)} does not match matrix {A.shape}")
         if self.gate is None and any(k in GATED for k in self.shapes):
             raise ConfigError(f"shaped noise features: shape(s) {list(GATED)} need a gate")
+        # the arrays every evaluation reads, converted once (evaluations run per controller step)
+        object.__setattr__(self, "_arrays", (
+            A.T, np.asarray(self.offset), None if self.gate is None else np.asarray(self.gate, dtype=float).T,
+            np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2), np.asarray(self.scale, dtype=float),
+            [(kind, [j for j, k in enumerate(self.shapes) if k == kind]) for kind in set(self.shapes)]))
 
     def gates(self, X: np.ndarray) -> np.ndarray | None:
         """c = X g^T at the rows of X, shape (m, p); None without gates."""
-        return None if self.gate is None else np.asarray(X, dtype=float) @ np.asarray(self.gate, dtype=float).T
+        gate_t = self._arrays[2]
+        return None if gate_t is None else np.asarray(X, dtype=float) @ gate_t
 
     @property
     def p(self) -> int:
@@ -161,18 +167,18 @@ class ShapedFeatures:
 
     def linear(self, X: np.ndarray) -> np.ndarray:
         """z = X a^T + b, shape (m, p)."""
-        return np.asarray(X, dtype=float) @ np.asarray(self.matrix, dtype=float).T + np.asarray(self.offset)
+        matrix_t, offset = self._arrays[:2]
+        return np.asarray(X, dtype=float) @ matrix_t + offset
 
     def values(self, X: np.ndarray) -> np.ndarray:
         """phi(x) at the rows of X (original units), shape (m, p)."""
         Z = self.linear(X)
         C = self.gates(X)
         out = np.empty_like(Z)
-        params = np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2)
-        for kind in set(self.shapes):  # one call per shape, its columns at once (params broadcast)
-            idx = [j for j, k in enumerate(self.shapes) if k == kind]
+        params, scale, groups = self._arrays[3:]
+        for kind, idx in groups:  # one call per shape, its columns at once (params broadcast)
             out[:, idx] = _shape_np(kind, Z[:, idx], params[idx].T, None if C is None else C[:, idx])
-        return out / np.asarray(self.scale, dtype=float)
+        return out / scale
 
     def casadi(self, x: ca.MX) -> ca.MX:
         """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""

@@ -327,6 +327,13 @@ class EAFM:
         return EAFMPrediction(t_mean=t_mean, f_mean=p.f_mean, f_var=p.f_var, g_mean=p.g_mean,
                               g_var=p.g_var, t_var=p.y_var, q=self.afm.q_of(U))
 
+    def f_var_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """The mean correction's posterior variance at many u, µm², shape (m,): :meth:`predict`'s
+        ``f_var`` (to the last bit) without g's part of the prediction (U shape (m, n_p))."""
+        c2 = self.posterior.f_var_std(self._xs(s, U))
+        np.maximum(c2, 0.0, out=c2)
+        return self.model.y_scale ** 2 * c2
+
     def mean_and_grad_u(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """EAFM mean t_mean and its gradient in u at many u (vectorised, for seeding).
 

@@ -86,6 +86,27 @@ def test_kernel_with_trend_adds_v_phi_phi_and_casadi_equals_numpy():
         np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
 
 
+def test_cross_grad_from_precomputed_training_terms_is_the_same_to_the_last_bit():
+    """The controller's seeding reuses the training side (Kernel.cross_terms, computed once per
+    fitted posterior); the answer must not move by a bit, so that a faster controller returns
+    the same commands. Independent answer: the call that computes everything from X and w."""
+    rng = np.random.default_rng(4)
+    tr = _trend(rng)
+    for k in (Kernel(rng.normal(size=4), 0.2, -1.0, rng.normal(size=4), trend=tr),
+              Kernel(rng.normal(size=4), -0.3, None, None)):
+        X, w = rng.normal(size=(40, 4)), rng.normal(size=40)
+        terms = k.cross_terms(X, w)
+        for m in (1, 17):
+            Xs = rng.normal(size=(m, 6))  # two context columns beyond the kernel's d
+            v0, g0 = k.cross_grad(Xs, X, w)
+            v1, g1 = k.cross_grad(Xs, None, None, terms=terms)
+            np.testing.assert_array_equal(v1, v0)
+            np.testing.assert_array_equal(g1, g0)
+            assert g1.shape == (m, 6) and not np.any(g1[:, 4:])
+            # and it is k(Xs, X) w (the SE part as se_matrix computes it)
+            np.testing.assert_allclose(v1, k.matrix(Xs, X) @ w, rtol=1e-11, atol=1e-12)
+
+
 def test_trend_refuses_gated_shapes_and_mismatched_arrays():
     rng = np.random.default_rng(3)
     with pytest.raises(ConfigError, match="rev"):

@@ -110,6 +110,9 @@ def test_vectorised_seeding_helpers_match(afm, eafm):
     t, dt = eafm.mean_and_grad_u(s, U)
     np.testing.assert_allclose(t, ref.t_mean, rtol=1e-12)
     np.testing.assert_allclose(eafm.g_mean_np(s, U), ref.g_mean, rtol=1e-12)
+    # f's variance alone (the objective's epistemic term, the least-motion rule): predict's, bit for bit
+    np.testing.assert_array_equal(eafm.f_var_np(s, U), ref.f_var)
+    assert np.all(ref.f_var > 0)  # the comparison is not between two arrays of zeros
     sym_s, sym_u = ca.MX.sym("s", afm.n_s), ca.MX.sym("u", afm.n_p)
     g = ca.Function("g", [sym_s, sym_u], [ca.gradient(eafm.expressions(sym_s, sym_u, ("t_mean",))["t_mean"], sym_u)])
     for k in range(U.shape[0]):
