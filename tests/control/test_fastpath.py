@@ -119,3 +119,38 @@ def test_a_start_the_fast_path_cannot_finish_goes_to_ipopt(afm, pair, monkeypatc
     r = fast.solve(10.0, s)
     assert calls and r.success and r.iterations > 0
     assert r.objective == pytest.approx(slow.solve(10.0, s).objective, rel=1e-6)
+
+
+def test_the_bound_buffer_evaluates_exactly_as_the_plain_call(afm, pair, monkeypatch):
+    """FastSQP evaluates its graph through a CasADi buffer bound to fixed arrays; the answer must
+    be the plain call's, bit for bit (independent answer: the same Function called with DMs), also
+    after other evaluations have overwritten the buffer's arrays, and a solve without the buffer
+    returns the same command."""
+    eafm, fast, _ = pair
+    sqp = fast._fast
+    assert sqp._buffer is not None  # casadi >= 3.6 (pyproject) has buffers
+    rng = np.random.default_rng(21)
+    S = _states(afm, 4, seed=22)
+    U = rng.uniform(afm.workspace.u_lo, afm.workspace.u_hi, size=(4, afm.n_p))
+    def plain(u, s, lam):  # the same evaluation through the plain call
+        monkeypatch.setattr(sqp, "_buffer", None)
+        try:
+            return sqp._eval(u, s, lam)
+        finally:
+            monkeypatch.undo()
+
+    def same(a, b):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+
+    first = sqp._eval(U[0], S[0], 0.3)
+    for u, s, lam in zip(U, S, rng.normal(size=4)):
+        same(sqp._eval(u, s, float(lam)), plain(u, s, float(lam)))
+    # a result returned earlier is a copy: later evaluations do not change it
+    same(first, plain(U[0], S[0], 0.3))
+    t = float(_targets(fast, S[:1], rng)[0])
+    x_buf, st_buf = sqp.solve(U[0], S[0], t)
+    monkeypatch.setattr(sqp, "_buffer", None)
+    x_plain, st_plain = sqp.solve(U[0], S[0], t)
+    np.testing.assert_array_equal(x_buf, x_plain)
+    assert st_buf["iter"] == st_plain["iter"]
