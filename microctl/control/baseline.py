@@ -125,6 +125,32 @@ class AFMController(BaseController):
         t0 = time.perf_counter()
         s = self._state(state)
         target = float(target_um)
+        x, status, st, ok = self._command(target, s)
+        K, qp = self.afm.K, s[1:]
+        if self.reporter is not None:
+            p = self.reporter.predict(s, x)
+            pred, std = float(p.t_mean[0]), float(math.sqrt(p.t_var[0]))
+        else:
+            pred, std = float(self.afm.t_of(x)), float("nan")
+        return ControlResult(
+            controller=self.name, target_um=target, state=s.copy(), u=x.copy(), q=self._q(x), predicted_um=pred,
+            predicted_std_um=std, objective=float(np.sum((K @ x - qp) ** 2)), status=status,
+            iterations=st["iter"], solve_time_s=time.perf_counter() - t0, success=bool(ok),
+            constraint_residual=float(abs(float(self.afm.t_of(x)) - target)), n_starts=1,
+        )
+
+    def command(self, target_um: float, state: np.ndarray | None = None) -> np.ndarray:
+        """The command :meth:`solve` returns, without its result (the least-motion rule's start).
+
+        Raises
+        ------
+        SolveError
+            As :meth:`solve`.
+        """
+        return self._command(float(target_um), self._state(state))[0]
+
+    def _command(self, target: float, s: np.ndarray) -> tuple[np.ndarray, str, dict, bool]:
+        """The command, its status, the solver's account and whether it passed the checks."""
         lo, hi = self._t_range
         if not (lo - self.settings.constraint_tol <= target <= hi + self.settings.constraint_tol):
             raise unreachable(target, s, "AFM", lo, hi)
@@ -148,15 +174,5 @@ class AFMController(BaseController):
                 x, status = u0, f"{status}; fallback to seed"
             else:
                 raise SolveError(f"AFM controller: no valid control signal for target {target:g} µm (IPOPT: {status})")
-        if self.reporter is not None:
-            p = self.reporter.predict(s, x)
-            pred, std = float(p.t_mean[0]), float(math.sqrt(p.t_var[0]))
-        else:
-            pred, std = float(self.afm.t_of(x)), float("nan")
-        return ControlResult(
-            controller=self.name, target_um=target, state=s.copy(), u=x.copy(), q=self._q(x), predicted_um=pred,
-            predicted_std_um=std, objective=float(np.sum((K @ x - qp) ** 2)), status=status,
-            iterations=st["iter"], solve_time_s=time.perf_counter() - t0, success=bool(ok),
-            constraint_residual=float(abs(float(self.afm.t_of(x)) - target)), n_starts=1,
-        )
+        return x, status, st, ok
 

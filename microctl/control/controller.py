@@ -374,7 +374,7 @@ class OptimalController(EAFMController):
             self._least = EAFMMeanController(self.eafm, self.settings)
             self._least_afm = AFMController(self.afm, self.settings)
         try:  # the AFM cannot reach every target the EAFM mean can
-            start = self._least_afm.solve(res.target_um, res.state).u
+            start = self._least_afm.command(res.target_um, res.state)
         except SolveError:
             return None
         moved = self._least.surface.refine(res.state, start, res.target_um)

@@ -307,10 +307,14 @@ class EAFM:
     def _x(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
         u = np.atleast_2d(np.asarray(u, dtype=float))
         s = np.atleast_2d(np.asarray(s, dtype=float))
-        s = np.broadcast_to(s, (u.shape[0], self.n_s)) if s.shape[0] == 1 else s
+        m = u.shape[0] if s.shape[0] == 1 else s.shape[0]
+        # filled column blocks (a state row broadcast down its block): the values np.hstack gives
+        X = np.empty((m, self.n_s + u.shape[1] + (self.n_q if self.uses_direction else 0)))
+        X[:, :self.n_s] = s
+        X[:, self.n_s:self.n_s + u.shape[1]] = u
         if self.uses_direction:  # the move's context after x = [s; u]
-            return np.hstack([s, u, np.broadcast_to(self.direction, (u.shape[0], self.n_q))])
-        return np.hstack([s, u])
+            X[:, self.n_s + u.shape[1]:] = self.direction
+        return X
 
     def predict(self, s: np.ndarray, u: np.ndarray) -> EAFMPrediction:
         """Reference prediction with :meth:`FittedVHGPR.predict` and the AFM (eq. 1).
