@@ -58,9 +58,16 @@ def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_
         subnormal values slow ``exp`` and the BLAS products that use the matrix several-fold.
     """
     inv_ls = np.exp(-np.asarray(log_lengthscales, dtype=float))
-    Za = np.asarray(Xa, dtype=float) * inv_ls
     Zb = np.asarray(Xb, dtype=float) * inv_ls
-    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + np.einsum("ij,ij->i", Zb, Zb)[None, :]
+    return _se_scaled(np.asarray(Xa, dtype=float) * inv_ls, Zb, np.einsum("ij,ij->i", Zb, Zb),
+                      log_signal_var, flush)
+
+
+def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: float,
+               flush: float | None = None) -> np.ndarray:
+    """:func:`se_matrix` from the scaled inputs Za (m, d), Zb (n, d) and Zb's squared row norms
+    zb2 (n,), which a caller evaluating against fixed training inputs computes once."""
+    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + zb2[None, :]
     sq -= 2.0 * (Za @ Zb.T)
     np.maximum(sq, 0.0, out=sq)
     sq *= -0.5
@@ -302,14 +309,7 @@ class Kernel:
         width = np.asarray(Xs).shape[1]
         Xs = self._cols(Xs)
         inv_ls = c.inv_ls
-        # the SE part as se_matrix computes it, with the training side precomputed
-        Zs = Xs * inv_ls
-        K = np.einsum("ij,ij->i", Zs, Zs)[:, None] + c.z2[None, :]
-        K -= 2.0 * (Zs @ c.Z.T)
-        np.maximum(K, 0.0, out=K)
-        K *= -0.5
-        np.exp(K, out=K)
-        K *= math.exp(float(self.log_signal_var))
+        K = _se_scaled(Xs * inv_ls, c.Z, c.z2, self.log_signal_var)  # the SE part, training side precomputed
         A = K * c.weights[None, :]
         a = A.sum(axis=1)
         # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2
