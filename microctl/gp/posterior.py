@@ -117,8 +117,7 @@ class Posterior:
             Kg = kg.matrix(xs[sl], self.X)
             # [N prediction] a* = k_f*^T (K_f + R)^-1 y,  c*^2 = k_f** - ||f_chol^-1 k_f*||^2
             a[sl] = Kf @ self.f_alpha
-            v = self.chol_inverse("f") @ Kf.T
-            c2[sl] = kf.diag(xs[sl]) - np.einsum("ij,ij->j", v, v)
+            c2[sl] = self._f_var_from(xs[sl], Kf)
             # [N prediction] mu* = k_g*^T (Lambda - I/2) 1 + m(x*),  s*^2 = k_g** - ||g_chol^-1 k_g*||^2
             # (+ the prior mean's parameter uncertainty, noise_prior)
             mu[sl] = Kg @ self.g_beta + gm.value(xs[sl])
@@ -129,17 +128,20 @@ class Posterior:
                 s2[sl] = kg.diag(xs[sl]) - np.einsum("ij,ij->j", v, v) + gm.variance(xs[sl])
         return a, c2, mu, s2
 
+    def _f_var_from(self, xs: np.ndarray, Kf: np.ndarray) -> np.ndarray:
+        """[N prediction] c*^2 = k_f** - ||f_chol^-1 k_f*||^2 at the rows of xs from ``Kf = k_f(xs, X)``, unclipped."""
+        v = self.chol_inverse("f") @ Kf.T
+        return self.f_kernel.diag(xs) - np.einsum("ij,ij->j", v, v)
+
     def f_var_std(self, xs: np.ndarray) -> np.ndarray:
         """c*^2 alone (:meth:`predict_std`'s, unclipped, the same chunks and operations, so the same
         to the last bit), shape (m,): f's variance without the O(m n^2) work of g's."""
         m = xs.shape[0]
         c2 = np.empty(m)
-        kf = self.f_kernel
         chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
         for start in range(0, m, chunk):
             sl = slice(start, min(m, start + chunk))
-            v = self.chol_inverse("f") @ kf.matrix(xs[sl], self.X).T
-            c2[sl] = kf.diag(xs[sl]) - np.einsum("ij,ij->j", v, v)
+            c2[sl] = self._f_var_from(xs[sl], self.f_kernel.matrix(xs[sl], self.X))
         return c2
 
     # ---- NumPy: vectorised forms (original units of y) -------------------------------------

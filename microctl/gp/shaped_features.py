@@ -150,15 +150,17 @@ class ShapedFeatures:
         if self.gate is None and any(k in GATED for k in self.shapes):
             raise ConfigError(f"shaped noise features: shape(s) {list(GATED)} need a gate")
         # the arrays every evaluation reads, converted once (evaluations run per controller step)
-        object.__setattr__(self, "_arrays", (
-            A.T, np.asarray(self.offset), None if self.gate is None else np.asarray(self.gate, dtype=float).T,
-            np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2), np.asarray(self.scale, dtype=float),
-            [(kind, [j for j, k in enumerate(self.shapes) if k == kind]) for kind in set(self.shapes)]))
+        for name, value in (
+                ("_matrix_t", A.T), ("_offset", np.asarray(self.offset)),
+                ("_gate_t", None if self.gate is None else np.asarray(self.gate, dtype=float).T),
+                ("_params", np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2)),
+                ("_scale", np.asarray(self.scale, dtype=float)),
+                ("_groups", [(kind, [j for j, k in enumerate(self.shapes) if k == kind]) for kind in set(self.shapes)])):
+            object.__setattr__(self, name, value)
 
     def gates(self, X: np.ndarray) -> np.ndarray | None:
         """c = X g^T at the rows of X, shape (m, p); None without gates."""
-        gate_t = self._arrays[2]
-        return None if gate_t is None else np.asarray(X, dtype=float) @ gate_t
+        return None if self._gate_t is None else np.asarray(X, dtype=float) @ self._gate_t
 
     @property
     def p(self) -> int:
@@ -167,18 +169,16 @@ class ShapedFeatures:
 
     def linear(self, X: np.ndarray) -> np.ndarray:
         """z = X a^T + b, shape (m, p)."""
-        matrix_t, offset = self._arrays[:2]
-        return np.asarray(X, dtype=float) @ matrix_t + offset
+        return np.asarray(X, dtype=float) @ self._matrix_t + self._offset
 
     def values(self, X: np.ndarray) -> np.ndarray:
         """phi(x) at the rows of X (original units), shape (m, p)."""
         Z = self.linear(X)
         C = self.gates(X)
         out = np.empty_like(Z)
-        params, scale, groups = self._arrays[3:]
-        for kind, idx in groups:  # one call per shape, its columns at once (params broadcast)
-            out[:, idx] = _shape_np(kind, Z[:, idx], params[idx].T, None if C is None else C[:, idx])
-        return out / scale
+        for kind, idx in self._groups:  # one call per shape, its columns at once (params broadcast)
+            out[:, idx] = _shape_np(kind, Z[:, idx], self._params[idx].T, None if C is None else C[:, idx])
+        return out / self._scale
 
     def casadi(self, x: ca.MX) -> ca.MX:
         """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""

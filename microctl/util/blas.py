@@ -22,34 +22,26 @@ _DEPTH = [0]
 
 
 class _OneThread(AbstractContextManager):
-    """The outermost block: limits the BLAS on entry and restores it on exit."""
+    """A block with the BLAS on one thread: the outermost open block sets the limit on entry and
+    restores it on exit; a block inside it has nothing to set or restore."""
 
     def __enter__(self):
-        if not _CONTROLLER:  # inspecting the loaded libraries once is the slow part
-            _CONTROLLER.append(ThreadpoolController())
-        self._limit = _CONTROLLER[0].limit(limits=1, user_api="blas")
+        self._limit = None
+        if _DEPTH[0] == 0:
+            if not _CONTROLLER:  # inspecting the loaded libraries once is the slow part
+                _CONTROLLER.append(ThreadpoolController())
+            self._limit = _CONTROLLER[0].limit(limits=1, user_api="blas")
         _DEPTH[0] += 1
         return self
 
     def __exit__(self, *exc):
         _DEPTH[0] -= 1
-        self._limit.__exit__(*exc)
-        return False
-
-
-class _Nested(AbstractContextManager):
-    """A block inside an open one: the BLAS is limited already, nothing to set or restore."""
-
-    def __enter__(self):
-        _DEPTH[0] += 1
-        return self
-
-    def __exit__(self, *exc):
-        _DEPTH[0] -= 1
+        if self._limit is not None:
+            self._limit.__exit__(*exc)
         return False
 
 
 def single_thread_blas() -> AbstractContextManager:
     """Context manager: the BLAS runs on one thread inside the block (entering costs ~12 µs; a
     block opened inside another costs nothing: the outermost one restores the BLAS)."""
-    return _Nested() if _DEPTH[0] > 0 else _OneThread()
+    return _OneThread()
