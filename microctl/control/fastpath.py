@@ -17,6 +17,7 @@ against IPOPT at random targets).
 from __future__ import annotations
 
 import itertools
+from typing import Any, Callable, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -40,6 +41,17 @@ def build_fast_function(u: ca.MX, s: ca.MX, J: ca.MX, t: ca.MX, name: str) -> ca
     gt = ca.gradient(t, u)
     H = ca.jacobian(gJ - lam * gt, u)
     return ca.Function(name, [u, s, lam], [J, gJ, t, gt, H])
+
+
+class _Bound(NamedTuple):
+    """A CasADi function bound to fixed NumPy arrays (:meth:`FastSQP._bind_buffer`)."""
+
+    buffer: Any  #: the CasADi buffer; it holds pointers into the arrays below (kept alive here)
+    run: Callable[[], None]  #: one evaluation: reads ``u``, ``s``, ``lam``, writes ``out``
+    u: np.ndarray
+    s: np.ndarray
+    lam: np.ndarray
+    out: np.ndarray
 
 
 class FastSQP:
@@ -74,7 +86,7 @@ class FastSQP:
         self.A, self.b, self.usable = self._qp.A, self._qp.b, self._qp.usable
 
     # ------------------------------------------------------------------ evaluation
-    def _bind_buffer(self) -> tuple | None:
+    def _bind_buffer(self) -> _Bound | None:
         """The packed function bound to fixed NumPy arrays (``casadi.Function.buffer``): an
         evaluation then copies three small inputs in and one vector out, without converting
         them to and from DM on every call (~40 us of the ~140 us of a Table I call, the same
@@ -91,15 +103,15 @@ class FastSQP:
         for i, a in enumerate(args):
             buf.set_arg(i, memoryview(a))
         buf.set_res(0, memoryview(out))
-        return buf, run, args, out  # buf holds the pointers into args and out: kept alive here
+        return _Bound(buf, run, *args, out)
 
     def _eval(self, u: np.ndarray, s: np.ndarray, lam: float):
         n = u.size
         if self._buffer is not None:
-            _, run, (a_u, a_s, a_lam), out = self._buffer
-            a_u[:], a_s[:], a_lam[0] = np.ravel(u), np.ravel(s), lam
-            run()
-            v = out.copy()
+            b = self._buffer
+            b.u[:], b.s[:], b.lam[0] = np.ravel(u), np.ravel(s), lam
+            b.run()
+            v = b.out.copy()
         else:
             v = self._packed(u, s, lam).full().ravel()
         # v = [J; dJ/du; t; dt/du; vec(H)] (H column-major)

@@ -78,18 +78,20 @@ class EAFMSurface:
             out.append(sign * best)
         return out[0], out[1]
 
-    def newton(self, s: np.ndarray, U: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+    def newton(self, s: np.ndarray, U: np.ndarray, target: float,
+               at_start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Move each row of U along w onto t_mean(s, u) = target; return U and |residual|.
 
         At most ``newton_steps`` steps; it stops as soon as every residual is below 1e-11 max(1,
         |target|) µm (one step with an affine mean correction), so an evaluation of the mean and
         its gradient (an m x n kernel) is not repeated once it would change nothing.
+        ``at_start``: ``eafm.mean_and_grad_u(s, U)`` when the caller has it (not evaluated again).
         """
         dirn = self.rset.dir_u
         U = U.copy()
         done = 1e-11 * max(1.0, abs(target))
-        for _ in range(self.settings.newton_steps):
-            t, dt = self.eafm.mean_and_grad_u(s, U)
+        for k in range(self.settings.newton_steps):
+            t, dt = at_start if k == 0 and at_start is not None else self.eafm.mean_and_grad_u(s, U)
             if np.all(np.abs(t - target) <= done):
                 return U, np.abs(t - target)
             slope = dt @ dirn
@@ -127,9 +129,9 @@ class EAFMSurface:
 
     def refine(self, s: np.ndarray, u: np.ndarray, target: float) -> np.ndarray | None:
         """Check (and if needed Newton-correct along w) the constraint residual and ranges."""
-        t, _ = self.eafm.mean_and_grad_u(s, u[None, :])
+        t, dt = self.eafm.mean_and_grad_u(s, u[None, :])
         if abs(t[0] - target) > self.settings.constraint_tol:
-            U, res = self.newton(s, u[None, :], target)
+            U, res = self.newton(s, u[None, :], target, at_start=(t, dt))
             if res[0] > self.settings.constraint_tol:
                 return None
             u = U[0]

@@ -286,41 +286,38 @@ class Kernel:
             linear=None if v is None else (X * v).T @ weights,
             trend=None if self.trend is None else self.trend.var * (self.trend.values(X).T @ weights))
 
-    def cross_grad(self, Xs: np.ndarray, X: np.ndarray | None, weights: np.ndarray | None,
-                   terms: CrossTerms | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def cross_grad(self, Xs: np.ndarray, terms: CrossTerms) -> tuple[np.ndarray, np.ndarray]:
         """``k(Xs, X) @ weights`` and its gradient in the rows of Xs (vectorised, for seeding).
 
         Parameters
         ----------
-        Xs : ndarray, shape (m, d)
-        X : ndarray, shape (n, d)
-        weights : ndarray, shape (n,)
-        terms : CrossTerms, optional
-            :meth:`cross_terms` of ``X`` and ``weights``, computed once (then ``X`` and
-            ``weights`` are not read); the result is the same to the last bit.
+        Xs : ndarray, shape (m, d')
+            d' >= d; the columns beyond the kernel's d are not read.
+        terms : CrossTerms
+            :meth:`cross_terms` of the training inputs X (n, d) and weights (n,), computed once
+            per fitted posterior (they do not change between calls).
 
         Returns
         -------
         value : ndarray, shape (m,)
-        grad : ndarray, shape (m, d)
+        grad : ndarray, shape (m, d')
             Zero in the columns beyond the kernel's d.
         """
-        c = self.cross_terms(X, weights) if terms is None else terms
         width = np.asarray(Xs).shape[1]
         Xs = self._cols(Xs)
-        inv_ls = c.inv_ls
-        K = _se_scaled(Xs * inv_ls, c.Z, c.z2, self.log_signal_var)  # the SE part, training side precomputed
-        A = K * c.weights[None, :]
+        inv_ls = terms.inv_ls
+        K = _se_scaled(Xs * inv_ls, terms.Z, terms.z2, self.log_signal_var)  # the SE part, training side precomputed
+        A = K * terms.weights[None, :]
         a = A.sum(axis=1)
         # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2
-        grad = -(a[:, None] * Xs - A @ c.X) * inv_ls * inv_ls
-        value = a + c.bias
-        if c.linear is not None:
-            value = value + Xs @ c.linear
-            grad = grad + c.linear[None, :]
-        if c.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
-            value = value + self.trend.values(Xs) @ c.trend
-            grad = grad + np.einsum("j,mjk->mk", c.trend, self.trend.gradients(Xs))
+        grad = -(a[:, None] * Xs - A @ terms.X) * inv_ls * inv_ls
+        value = a + terms.bias
+        if terms.linear is not None:
+            value = value + Xs @ terms.linear
+            grad = grad + terms.linear[None, :]
+        if terms.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
+            value = value + self.trend.values(Xs) @ terms.trend
+            grad = grad + np.einsum("j,mjk->mk", terms.trend, self.trend.gradients(Xs))
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad

@@ -149,7 +149,7 @@ class Posterior:
         """Mean of f, shape (m,), and its gradient in the original inputs, shape (m, d)."""
         if self._f_cross is None:  # the training side, computed once (Kernel.cross_terms)
             self._f_cross = self.f_kernel.cross_terms(self.X, np.asarray(self.f_alpha))
-        a, da = self.f_kernel.cross_grad(xs, None, None, terms=self._f_cross)
+        a, da = self.f_kernel.cross_grad(xs, self._f_cross)
         f = self.y_mean + self.y_scale * a
         dx = self.y_scale * da / self.x_scale
         return f, dx

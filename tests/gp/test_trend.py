@@ -76,7 +76,7 @@ def test_kernel_with_trend_adds_v_phi_phi_and_casadi_equals_numpy():
         np.testing.assert_allclose(float(dg), k.diag(row[None])[0], rtol=1e-11)
     # k(Xs, X) w and its input gradient (the controller's seeding) against central differences
     w = rng.normal(size=9)
-    val, grad = k.cross_grad(Xa, Xb, w)
+    val, grad = k.cross_grad(Xa, k.cross_terms(Xb, w))
     np.testing.assert_allclose(val, k.matrix(Xa, Xb) @ w, rtol=1e-11)
     h = 1e-6
     for c in range(4):
@@ -86,10 +86,11 @@ def test_kernel_with_trend_adds_v_phi_phi_and_casadi_equals_numpy():
         np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
 
 
-def test_cross_grad_from_precomputed_training_terms_is_the_same_to_the_last_bit():
-    """The controller's seeding reuses the training side (Kernel.cross_terms, computed once per
-    fitted posterior); the answer must not move by a bit, so that a faster controller returns
-    the same commands. Independent answer: the call that computes everything from X and w."""
+def test_cross_grad_reads_the_training_side_from_its_precomputed_terms():
+    """The controller's seeding computes the training side once per fitted posterior
+    (Kernel.cross_terms) and reuses it: with and without bias, linear and trend parts, and with
+    context columns beyond the kernel's d (ignored, their gradient zero), the value is
+    k(Xs, X) w as the kernel matrix computes it."""
     rng = np.random.default_rng(4)
     tr = _trend(rng)
     for k in (Kernel(rng.normal(size=4), 0.2, -1.0, rng.normal(size=4), trend=tr),
@@ -98,13 +99,12 @@ def test_cross_grad_from_precomputed_training_terms_is_the_same_to_the_last_bit(
         terms = k.cross_terms(X, w)
         for m in (1, 17):
             Xs = rng.normal(size=(m, 6))  # two context columns beyond the kernel's d
-            v0, g0 = k.cross_grad(Xs, X, w)
-            v1, g1 = k.cross_grad(Xs, None, None, terms=terms)
-            np.testing.assert_array_equal(v1, v0)
-            np.testing.assert_array_equal(g1, g0)
-            assert g1.shape == (m, 6) and not np.any(g1[:, 4:])
-            # and it is k(Xs, X) w (the SE part as se_matrix computes it)
-            np.testing.assert_allclose(v1, k.matrix(Xs, X) @ w, rtol=1e-11, atol=1e-12)
+            v, g = k.cross_grad(Xs, terms)
+            assert g.shape == (m, 6) and not np.any(g[:, 4:])
+            np.testing.assert_allclose(v, k.matrix(Xs, X) @ w, rtol=1e-11, atol=1e-12)
+            v4, g4 = k.cross_grad(Xs[:, :4], terms)
+            np.testing.assert_array_equal(v4, v)
+            np.testing.assert_array_equal(g4, g[:, :4])
 
 
 def test_trend_refuses_gated_shapes_and_mismatched_arrays():
