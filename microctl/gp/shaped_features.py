@@ -76,25 +76,32 @@ def _shape_np(kind: str, z: np.ndarray, p: np.ndarray, c: np.ndarray | None = No
     raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
 
 
+def _num(v):
+    """A shape parameter as CasADi reads it: a float (one feature), or a DM column (a group of them)."""
+    return float(v) if np.ndim(v) == 0 else ca.DM(np.asarray(v, dtype=float).reshape(-1, 1))
+
+
 def _shape_ca(kind: str, z: ca.MX, p: np.ndarray, c: ca.MX | None = None) -> ca.MX:
+    """``_shape_np`` for CasADi: z a scalar with ``p`` its two parameters, or a column of k values
+    with ``p`` a (2, k) array (elementwise, one node per operation for the whole group)."""
     if kind == "rev":
-        return z * z / (z * z + float(p[0]) ** 2) * 0.5 * (1.0 - ca.tanh(z * c / float(p[1])))
+        return z * z / (z * z + _num(p[0]) ** 2) * 0.5 * (1.0 - ca.tanh(z * c / _num(p[1])))
     if kind == "sq":
         return z * z
     if kind == "abs":
-        return ca.sqrt(z * z + float(p[0]) ** 2) - float(p[0])
+        return ca.sqrt(z * z + _num(p[0]) ** 2) - _num(p[0])
     if kind == "sat":
-        return z * z / (z * z + float(p[0]) ** 2)
+        return z * z / (z * z + _num(p[0]) ** 2)
     if kind == "up":
-        return z * z * 0.5 * (1.0 + ca.tanh(z / float(p[0])))
+        return z * z * 0.5 * (1.0 + ca.tanh(z / _num(p[0])))
     if kind == "down":
-        return z * z * 0.5 * (1.0 - ca.tanh(z / float(p[0])))
+        return z * z * 0.5 * (1.0 - ca.tanh(z / _num(p[0])))
     if kind == "bump":
-        return ca.exp(-((z - float(p[0])) ** 2) / (2.0 * float(p[1]) ** 2))
+        return ca.exp(-((z - _num(p[0])) ** 2) / (2.0 * _num(p[1]) ** 2))
     if kind == "exp":
         return ca.exp(ca.fmin(z, 50.0))
     if kind == "step":
-        return 1.0 / (1.0 + ca.exp(-(ca.sqrt(z * z + float(p[1]) ** 2) - float(p[0])) / float(p[1])))
+        return 1.0 / (1.0 + ca.exp(-(ca.sqrt(z * z + _num(p[1]) ** 2) - _num(p[0])) / _num(p[1])))
     raise ConfigError(f"noise feature shape '{kind}' is not one of {sorted(SHAPES)}")
 
 
@@ -186,6 +193,19 @@ class ShapedFeatures:
         c = None if self.gate is None else ca.mtimes(ca.DM(np.asarray(self.gate, dtype=float)), x)
         return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j]), None if c is None else c[j])
                             / float(self.scale[j]) for j, kind in enumerate(self.shapes)])
+
+    def casadi_dot(self, x: ca.MX, weights: np.ndarray) -> ca.MX:
+        """``sum_j weights_j phi_j(x)`` for a symbolic x (d, 1), shape (1, 1): the features of one
+        shape evaluated together (a few vector operations instead of a few per feature), the
+        form a weighted sum of many features in a controller's graph should take."""
+        w = np.asarray(weights, dtype=float).reshape(-1)
+        z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), x) + ca.DM(np.asarray(self.offset, dtype=float))
+        c = None if self.gate is None else ca.mtimes(ca.DM(np.asarray(self.gate, dtype=float)), x)
+        out = ca.MX(0.0)
+        for kind, idx in sorted(self._groups):  # sorted: the same graph in every process
+            val = _shape_ca(kind, z[idx], self._params[idx].T, None if c is None else c[idx])
+            out = out + ca.dot(ca.DM(w[idx] / self._scale[idx]), val)
+        return out
 
     def subset(self, idx) -> "ShapedFeatures":
         """The features ``idx`` (a sequence of indices), in that order."""

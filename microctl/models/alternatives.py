@@ -67,7 +67,7 @@ class Alternatives:
         """``v_alt`` for a symbolic x = [s; u] (n_s + n_p, 1), µm², shape (1, 1)."""
         if self.features is None:
             return ca.MX(0.0)
-        return ca.dot(ca.DM(self.weights * self.coef), self.features.casadi(x))
+        return self.features.casadi_dot(x, self.weights * self.coef)
 
     def expected_excess(self, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray) -> float:
         """``v_alt(a) - v_alt(b)`` for two moves from ``state``, µm² (0 without alternatives).

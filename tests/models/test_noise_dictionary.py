@@ -42,6 +42,29 @@ def test_shaped_features_casadi_equals_numpy_at_random_points():
     np.testing.assert_array_equal(back.values(X), f.values(X))
 
 
+def test_weighted_sum_in_casadi_equals_numpy_with_several_features_per_shape():
+    """``casadi_dot`` evaluates the features of one shape together, each with its own parameters
+    and scale: against NumPy's values at random points, three features of every shape (gates for
+    "rev"), and its gradient against central differences of the NumPy sum."""
+    rng = np.random.default_rng(1)
+    kinds = tuple(SHAPES) * 3
+    p, d = len(kinds), 5
+    params = np.column_stack([rng.uniform(0.5, 2, p), rng.uniform(0.5, 2, p)])
+    f = ShapedFeatures(rng.normal(size=(p, d)), rng.normal(size=p), kinds, params, rng.uniform(0.5, 2, p),
+                       tuple(f"f{k}" for k in range(p)), rng.normal(size=(p, d)))
+    w = rng.uniform(-1, 1, p)
+    x = ca.MX.sym("x", d)
+    val = f.casadi_dot(x, w)
+    fun = ca.Function("s", [x], [val, ca.gradient(val, x)])
+    X = rng.normal(size=(20, d))
+    h = 1e-6
+    for row in X:
+        v, g = fun(row)
+        np.testing.assert_allclose(float(v), f.values(row[None])[0] @ w, rtol=1e-12, atol=1e-12)
+        fd = [(f.values((row + h * e)[None])[0] - f.values((row - h * e)[None])[0]) @ w / (2 * h) for e in np.eye(d)]
+        np.testing.assert_allclose(np.array(g).ravel(), fd, rtol=1e-6, atol=1e-7)
+
+
 def test_ball_load_map_matches_the_contact_physics(afm):
     """F(u) = f0 + B u agrees with the forces of the contact equilibrium solved by the physics at
     random poses (all balls loaded on sim_paper), to 1e-9 N."""
