@@ -162,7 +162,9 @@ class ShapedFeatures:
                 ("_gate_t", None if self.gate is None else np.asarray(self.gate, dtype=float).T),
                 ("_params", np.asarray(self.params, dtype=float).reshape(len(self.shapes), 2)),
                 ("_scale", np.asarray(self.scale, dtype=float)),
-                ("_groups", [(kind, [j for j, k in enumerate(self.shapes) if k == kind]) for kind in set(self.shapes)])):
+                # the features of each shape, shapes in sorted order (the same in every process)
+                ("_groups", [(kind, [j for j, k in enumerate(self.shapes) if k == kind])
+                             for kind in sorted(set(self.shapes))])):
             object.__setattr__(self, name, value)
 
     def gates(self, X: np.ndarray) -> np.ndarray | None:
@@ -187,10 +189,15 @@ class ShapedFeatures:
             out[:, idx] = _shape_np(kind, Z[:, idx], self._params[idx].T, None if C is None else C[:, idx])
         return out / self._scale
 
-    def casadi(self, x: ca.MX) -> ca.MX:
-        """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""
+    def _linear_ca(self, x: ca.MX) -> tuple[ca.MX, ca.MX | None]:
+        """z = A x + b (p, 1) and the gates c = G x (p, 1; None without gates) for a symbolic x."""
         z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), x) + ca.DM(np.asarray(self.offset, dtype=float))
         c = None if self.gate is None else ca.mtimes(ca.DM(np.asarray(self.gate, dtype=float)), x)
+        return z, c
+
+    def casadi(self, x: ca.MX) -> ca.MX:
+        """phi(x) for a symbolic input x (d, 1) in original units, shape (p, 1)."""
+        z, c = self._linear_ca(x)
         return ca.vertcat(*[_shape_ca(kind, z[j], np.asarray(self.params[j]), None if c is None else c[j])
                             / float(self.scale[j]) for j, kind in enumerate(self.shapes)])
 
@@ -199,10 +206,9 @@ class ShapedFeatures:
         shape evaluated together (a few vector operations instead of a few per feature), the
         form a weighted sum of many features in a controller's graph should take."""
         w = np.asarray(weights, dtype=float).reshape(-1)
-        z = ca.mtimes(ca.DM(np.asarray(self.matrix, dtype=float)), x) + ca.DM(np.asarray(self.offset, dtype=float))
-        c = None if self.gate is None else ca.mtimes(ca.DM(np.asarray(self.gate, dtype=float)), x)
+        z, c = self._linear_ca(x)
         out = ca.MX(0.0)
-        for kind, idx in sorted(self._groups):  # sorted: the same graph in every process
+        for kind, idx in self._groups:
             val = _shape_ca(kind, z[idx], self._params[idx].T, None if c is None else c[idx])
             out = out + ca.dot(ca.DM(w[idx] / self._scale[idx]), val)
         return out
