@@ -9,7 +9,10 @@ unlike the F-test; :mod:`microctl.util.stats`) and Welch's t-test on |e_s|.
 Absolute movement (IV-C): PE = |t' − prediction| per move for AFM and EAFM (eq. of IV-B.1),
 averaged over the trials per point; the paper's two-sample t-test plus the paired t-test and
 Wilcoxon signed-rank test (the same moves are predicted by both models); the fraction of
-measurements inside the EAFM's ±2σ band.
+measurements inside the EAFM's ±2σ band. On a simulated stage also the models' errors from the
+true mean, and whether the EAFM's predicted bias uncertainty (f's std, eq. 1's epistemic part)
+covers its own error from the true mean: the fraction of moves with |mean − true mean| <= 2 std
+(95.4 % for a calibrated f) and the median of |mean − true mean| / std.
 """
 
 from __future__ import annotations
@@ -185,6 +188,14 @@ def absolute_stats(ab: dict) -> dict:
         hi = (ab["eafm_mean_um"] + 2 * ab["eafm_std_um"] - tm) / ab["true_std_um"]
         out["expected_fraction_within_2sigma"] = float(np.mean(ndtr(hi) - ndtr(lo)))
         out["tests"]["paired_t_mean_error_vs_truth"] = _test(stats.paired_t, err_afm, err_eafm)
+        out["true_mean_um"] = tm
+        bias = ab.get("eafm_bias_std_um")
+        if bias is not None:  # is the predicted uncertainty of the mean (f's std) its actual error's size?
+            dev = np.abs(ab["eafm_mean_um"] - tm)
+            out["bias_vs_truth"] = {"within_2sigma": float(np.mean(dev <= 2 * bias)),
+                                    "median_error_over_std": float(np.median(dev / np.maximum(bias, 1e-12)))}
+    if ab.get("eafm_bias_std_um") is not None:
+        out["eafm_bias_std_um"] = ab["eafm_bias_std_um"]
     return out
 
 
@@ -446,6 +457,12 @@ def absolute_section(results: dict, level: int = 2) -> list[str]:
         L.append(f"- against the simulator's noise-free mean: mean error AFM {_f(np.mean(mt['afm']))} µm, EAFM "
                  f"{_f(np.mean(mt['eafm']))} µm; EAFM below AFM at {mt['eafm_below_afm_points']} of "
                  f"{ab['points']} points")
+    if "bias_vs_truth" in ab:
+        bt = ab["bias_vs_truth"]
+        L.append(f"- the EAFM's predicted bias uncertainty (f's std) against its error from the true mean: "
+                 f"the true mean inside the ±2 std band at {100 * bt['within_2sigma']:.1f} % of the moves "
+                 f"(95.4 % for a calibrated f), median error / std {_g(bt['median_error_over_std'])} "
+                 f"(0.67 for a calibrated f)")
     return L + [""]
 
 

@@ -282,6 +282,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
     afm_pred = afm_pred + loop
     eafm_mean = np.full((T, n), np.nan)
     eafm_std = np.full((T, n), np.nan)
+    eafm_bias_std = np.full((T, n), np.nan)  # f's std: the predicted uncertainty of the mean itself
     true_mean = np.full((T, n), np.nan)
     true_std = np.full((T, n), np.nan)
     zero = np.zeros(afm.n_p)
@@ -297,6 +298,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
                     last = direction.after_move(last, q_before, s[1:])
                     p = eafm.with_direction(last).predict(s, u)  # the direction: a model with reversals
                     eafm_mean[k, i], eafm_std[k, i] = float(p.t_mean[0]) + loop[i], math.sqrt(float(p.t_var[0]))
+                    eafm_bias_std[k, i] = math.sqrt(max(float(p.f_var[0]), 0.0))
                     if truth is not None:
                         true_mean[k, i] = float(truth.true_mean(s, u))
                         true_std[k, i] = math.sqrt(float(truth.true_var(s, u)))
@@ -306,7 +308,7 @@ def _absolute(run: _Run, eafm: EAFM) -> dict:
                     pr.step()
     run.timings_s["absolute"] = time.perf_counter() - t0
     return {"u": U, "measured_um": meas, "afm_um": afm_pred, "eafm_mean_um": eafm_mean,
-            "eafm_std_um": eafm_std, "true_mean_um": true_mean, "true_std_um": true_std}
+            "eafm_std_um": eafm_std, "eafm_bias_std_um": eafm_bias_std, "true_mean_um": true_mean, "true_std_um": true_std}
 
 
 def _absolute_loop_shifts(afm, U: np.ndarray) -> np.ndarray:

@@ -129,6 +129,31 @@ def test_msse_recomputed_from_logs(quick_run):
     assert len(read_log(out / "absolute_log.csv", stage)) == 2 * 3 * 2
 
 
+def test_bias_uncertainty_against_the_truth(quick_run):
+    """The absolute experiment's bias uncertainty is f's std at the logged move (not the total std),
+    and its coverage of the true mean is the fraction the report states."""
+    from microctl.models.afm import AnalyticForwardModel
+    from microctl.models.eafm import EAFM
+
+    out, res = quick_run
+    ab = res["absolute"]
+    stage = load_stage_config(STAGE).stage
+    log = read_log(out / "absolute_log.csv", stage)
+    point = log.extra_numeric("point")
+    rows = point >= 0  # the moves to the points, after each return to zero; trial-major order
+    eafm = EAFM(AnalyticForwardModel(stage), out / "model.npz")
+    f_var = np.array([eafm.predict(s, u).f_var[0] for s, u in zip(log.s_prev[rows], log.u[rows])])
+    bias = np.asarray(ab["eafm_bias_std_um"])
+    np.testing.assert_allclose(bias.ravel(), np.sqrt(f_var), rtol=1e-9)
+    assert np.all(bias > 0) and np.all(bias < np.asarray(ab["eafm_std_um"]))  # f's part of t's variance
+    tm, mean = np.asarray(ab["true_mean_um"]), np.asarray(ab["eafm_mean_um"])
+    np.testing.assert_allclose(np.abs(tm - mean).mean(axis=0), ab["mean_error_vs_truth_um"]["eafm"], rtol=1e-12)
+    dev = np.abs(mean - tm)
+    assert ab["bias_vs_truth"]["within_2sigma"] == pytest.approx(np.count_nonzero(dev <= 2 * bias) / dev.size)
+    assert ab["bias_vs_truth"]["median_error_over_std"] == pytest.approx(np.median(dev / bias))
+    assert "predicted bias uncertainty (f's std)" in (out / "report.md").read_text()
+
+
 def test_common_random_numbers(quick_run):
     """Same seed per trial for every controller: the return-to-zero moves read the same gauge value."""
     out, res = quick_run
