@@ -167,6 +167,9 @@ def absolute_stats(ab: dict) -> dict:
         "fraction_within_2sigma": stats.fraction_within(meas, ab["eafm_mean_um"], ab["eafm_std_um"], 2.0),
         "fraction_within_1sigma": stats.fraction_within(meas, ab["eafm_mean_um"], ab["eafm_std_um"], 1.0),
     }
+    bias = ab.get("eafm_bias_std_um")  # f's std per move (runs before it was recorded have none)
+    if bias is not None:
+        out["eafm_bias_std_um"] = bias
     t = _test(stats.two_sample_t, pe_afm, pe_eafm)
     out["p_value"] = None if t is None else t["p_value"]
     out["tests"] = {"two_sample_t": t, "paired_t": _test(stats.paired_t, pe_afm, pe_eafm),
@@ -189,13 +192,10 @@ def absolute_stats(ab: dict) -> dict:
         out["expected_fraction_within_2sigma"] = float(np.mean(ndtr(hi) - ndtr(lo)))
         out["tests"]["paired_t_mean_error_vs_truth"] = _test(stats.paired_t, err_afm, err_eafm)
         out["true_mean_um"] = tm
-        bias = ab.get("eafm_bias_std_um")
         if bias is not None:  # is the predicted uncertainty of the mean (f's std) its actual error's size?
             dev = np.abs(ab["eafm_mean_um"] - tm)
             out["bias_vs_truth"] = {"within_2sigma": float(np.mean(dev <= 2 * bias)),
                                     "median_error_over_std": float(np.median(dev / np.maximum(bias, 1e-12)))}
-    if ab.get("eafm_bias_std_um") is not None:
-        out["eafm_bias_std_um"] = ab["eafm_bias_std_um"]
     return out
 
 
