@@ -480,9 +480,31 @@ def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
             row.update(family=fam, verify_n=sum(t["verify_n"] for t in tg),
                        verify_violations=sum(t["verify_violations"] for t in tg),
                        mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)),
-                       **_audit_summary(runs))
+                       controller_losses=_controller_losses(runs), **_audit_summary(runs))
             table.append(row)
     return table
+
+
+#: A failing rig-target is the controller's loss when the model's own expected squared error
+#: (f's variance plus the mean noise variance) at the oracle's pose is below the chosen pose's by
+#: more than this fraction: the model saw the better pose and the controller did not take it.
+CONTROLLER_LOSS_MARGIN = 0.05
+
+
+def controller_loss(t: dict) -> bool:
+    """Whether the model itself ranks the oracle's pose better than the one the controller chose
+    (by more than :data:`CONTROLLER_LOSS_MARGIN` in expected squared error, f_var + noise);
+    otherwise a failing target is the model's loss (it predicts the oracle's pose no better)."""
+    chosen = t["pred_noise_std_um"] ** 2 + t["f_std_um"] ** 2
+    oracle = t["pred_noise_std_oracle_um"] ** 2 + t["f_std_oracle_um"] ** 2
+    return oracle < (1.0 - CONTROLLER_LOSS_MARGIN) * chosen
+
+
+def _controller_losses(runs: list[dict]) -> str:
+    """``"k of m"``: of the m failing rig-targets, k where the model ranked the oracle's pose better."""
+    fails = [t for r in runs for t in r["targets"]
+             if t["std_um"] > STD_BAR * t["oracle_std_um"] or abs(t["err_um"]) > ERR_BAR_UM]
+    return f"{sum(controller_loss(t) for t in fails)} of {len(fails)}"
 
 
 def _rig_passes(run: dict) -> bool:
@@ -504,6 +526,7 @@ FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
     ("mc_std_dev_max", "max abs(MC std / exact std - 1)", "{:.3f}"),
     ("evidence_median", "evidence against the model at the training moves, median (nats)", "{:.1f}"),
     ("fail_shown", "failing rigs whose training data show the error", "{}"),
+    ("controller_losses", "failing rig-targets where the model ranks the oracle's pose better", "{}"),
 )
 
 
@@ -517,7 +540,10 @@ def _fmt_fail(f: dict) -> str:
             f"err {f['err_um']:+.3f} µm, std {f['std_um']:.3f} vs oracle {f['oracle_std_um']:.3f} "
             f"({f['std_um'] / f['oracle_std_um']:.2f}x), AFM {f['afm_std_um']:.3f}; predicted std {f['pred_std_um']:.3f} "
             f"(noise {f['pred_noise_std_um']:.3f}, f {f['f_std_um']:.3f}); model's noise at the oracle pose "
-            f"{f['pred_noise_std_oracle_um']:.3f}; q_prev {f['q_prev_um']} q {f['q_um']} oracle q {f['oracle_q_um']}"
+            f"{f['pred_noise_std_oracle_um']:.3f} (f {f['f_std_oracle_um']:.3f}: "
+            + ("the model ranks it better, the controller's loss" if controller_loss(f)
+               else "the model ranks it no better, the model's loss")
+            + f"); q_prev {f['q_prev_um']} q {f['q_um']} oracle q {f['oracle_q_um']}"
             + ("" if not f.get("audit") else
                f"; evidence against the model at the training moves {f['audit']['evidence_nats']:.1f} nats "
                f"(of it the mean {f['audit']['mean_part_nats']:.1f}; one source enters at "
@@ -535,7 +561,8 @@ def print_families(table: list[dict], results: list[dict]) -> None:
                                          f"|err| med {t['err_median_um']:.3f} max {t['err_max_um']:.3f}, calib "
                                          f"{t['cal_pass']}/{t['cal_n']}, oracle beaten {t['verify_violations']}/"
                                          f"{t['verify_n']}, evidence med {t['evidence_median']:.1f} nats, failing "
-                                         f"rigs whose data show the error {t['fail_shown']}"
+                                         f"rigs whose data show the error {t['fail_shown']}, failing targets the model ranked the oracle's pose "
+                                         f"better at {t['controller_losses']}"
                                          for t in table).replace(" ; ", "\n  "))
     fails = failing_targets(results)
     print(f"\nfailing rig-targets ({len(fails)}):")
@@ -555,7 +582,10 @@ def families_markdown(table: list[dict], results: list[dict], header: str, wall_
          f"Oracle: grid search {FAMILY_ORACLE} over the redundant set on the family's exact truth; checked against "
          f"{VERIFY_POSES} random reaching poses per target (a violation = a random pose more than "
          f"{VERIFY_TOL:.0%} quieter in std). MC column: the chosen pose's std by 4000 draws of the simulator "
-         "against the exact std.", ""]
+         "against the exact std. The last column splits the failing rig-targets: the controller's loss where the "
+         "model's own expected squared error (f's variance plus the noise variance) at the oracle's pose is more than "
+         f"{CONTROLLER_LOSS_MARGIN:.0%} below the chosen pose's, else the model's (it predicts the oracle's pose no "
+         "better).", ""]
     L += family_table_markdown(table)
     fails = failing_targets(results)
     L += ["", f"Failing rig-targets ({len(fails)}):", ""] + [f"- {_fmt_fail(f)}" for f in fails]

@@ -44,7 +44,7 @@ def test_a_failing_target_names_a_floor_the_mean_passes_through():
     """A rig-run whose floor check is degenerate (kept in the JSON) says so on each failing target's
     line; a run without one does not."""
     bench = _bench()
-    t = {**_target(0.05, 0.15, 0.03, 0.004), "target_um": 6.0, "f_std_um": 0.03, "pred_noise_std_oracle_um": 0.01,
+    t = {**_target(0.05, 0.15, 0.03, 0.004), "target_um": 6.0, "f_std_um": 0.03, "pred_noise_std_oracle_um": 0.01, "f_std_oracle_um": 0.02,
          "q_prev_um": [0, 0, 0, 0], "q_um": [1, 1, 1, 1], "oracle_q_um": [1, 1, 1, 1]}
     floor = {"rows": [16, 67], "hat": [1.0, 1.0], "floor_std_um": 5.7e-5}
     results = [{"family": "hinge_slip", "seed": 8, "runs": [
@@ -54,3 +54,26 @@ def test_a_failing_target_names_a_floor_the_mean_passes_through():
     assert len(lines) == 2 and all(": mean;" in ln for ln in lines)
     assert "floor not an estimate: f passes through 2 floor-only training readings (floor std 5.7e-05 µm" in lines[0]
     assert "floor not an estimate" not in lines[1]
+
+
+def test_a_failing_target_is_the_controllers_loss_only_where_the_model_ranks_the_oracle_better():
+    """Expected squared errors worked by hand (f_var + noise var, µm²): a target counts as the
+    controller's loss when the oracle pose's is more than 5 % below the chosen pose's."""
+    bench = _bench()
+
+    def tgt(std, noise, f, noise_o, f_o):
+        return {**_target(std, 0.0, 0.1, noise), "target_um": 6.0, "f_std_um": f, "pred_noise_std_oracle_um": noise_o,
+                "f_std_oracle_um": f_o, "q_prev_um": [0] * 4, "q_um": [0] * 4, "oracle_q_um": [0] * 4}
+
+    chosen = tgt(0.2, 0.3, 0.4, 0.0, 0.0)      # chosen 0.09 + 0.16 = 0.25; oracle 0: better (controller)
+    flat = tgt(0.2, 0.3, 0.4, 0.4, 0.3)        # oracle 0.16 + 0.09 = 0.25: a tie (the model's)
+    near = tgt(0.2, 0.3, 0.4, 0.0, 0.4869)     # oracle 0.2371 = 0.9484 x 0.25: just past 5 % (controller)
+    edge = tgt(0.2, 0.3, 0.4, 0.0, 0.4875)     # oracle 0.2377 = 0.9506 x 0.25: within 5 % (the model's)
+    passing = tgt(0.1, 0.3, 0.4, 0.0, 0.0)     # std 0.1 = the oracle's: not a failing target, not counted
+    assert [bench.controller_loss(t) for t in (chosen, flat, near, edge)] == [True, False, True, False]
+    runs = [{"n": 200, "method": "default", "targets": [chosen, flat, near, edge, passing]}]
+    assert bench._controller_losses(runs) == "2 of 4"
+    results = [{"family": "clean", "seed": 0, "runs": runs}]
+    lines = [bench._fmt_fail(f) for f in bench.failing_targets(results)]
+    assert len(lines) == 4
+    assert "the controller's loss" in lines[0] and "the model's loss" in lines[1]
