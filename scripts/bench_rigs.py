@@ -502,13 +502,17 @@ def controller_loss(t: dict) -> bool:
 
 def _controller_losses(runs: list[dict]) -> str:
     """``"k of m"``: of the m failing rig-targets, k where the model ranked the oracle's pose better."""
-    fails = [t for r in runs for t in r["targets"]
-             if t["std_um"] > STD_BAR * t["oracle_std_um"] or abs(t["err_um"]) > ERR_BAR_UM]
+    fails = [t for r in runs for t in r["targets"] if not _target_passes(t)]
     return f"{sum(controller_loss(t) for t in fails)} of {len(fails)}"
 
 
+def _target_passes(t: dict) -> bool:
+    """The bar at one rig-target: true std <= STD_BAR x the oracle's and |true error| <= ERR_BAR_UM."""
+    return t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM
+
+
 def _rig_passes(run: dict) -> bool:
-    return all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM for t in run["targets"])
+    return all(_target_passes(t) for t in run["targets"])
 
 
 def _audit_summary(runs: list[dict]) -> dict:
@@ -735,7 +739,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"preload {res['preload_n']:.0f} N, gains {np.round(res['gains'], 3).tolist()}")
             for r in res["runs"]:
                 for t in r["targets"]:
-                    bad = t["std_um"] > STD_BAR * t["oracle_std_um"] or abs(t["err_um"]) > ERR_BAR_UM
+                    bad = not _target_passes(t)
                     print(f"  n={r['n']:>3} {r['method']:>8} t={t['target_um']:>4g} err {t['err_um']:+.3f} "
                           f"std {t['std_um']:.3f} oracle {t['oracle_std_um']:.3f} "
                           f"({t['std_um'] / t['oracle_std_um']:.2f}x) AFM {t['afm_std_um']:.3f} "
