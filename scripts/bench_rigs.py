@@ -147,6 +147,9 @@ METHODS = {
     # the default with the noise parameters' uncertainty propagated into the objective
     "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
                      ControllerSettings()),
+    # the default with g's GP on the actuators' positions and steps (microctl.models.noise_inputs)
+    "g_actuators": Method("g_actuators", "covering", ResidualModelSettings(g_inputs="actuators"),
+                          ControllerSettings()),
 }
 SEED_SET_STRIDE = 10_000
 #: Controllers a seed-set run keeps (those the bars of microctl.experiments.bars judge).

@@ -83,7 +83,7 @@ class Training:
         One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
-    noise_model, linear_trend, mean_shift, restarts, max_iter
+    noise_model, linear_trend, mean_shift, g_inputs, g_start, restarts, max_iter
         The residual model (:class:`~microctl.models.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
         Refinement rounds after the first fit (0: none): each runs incremental episodes,
@@ -109,6 +109,8 @@ class Training:
     noise_model: str = same_setting(ResidualModelSettings, "noise_model")
     linear_trend: bool = same_setting(ResidualModelSettings, "linear_trend")
     mean_shift: bool = same_setting(ResidualModelSettings, "mean_shift")
+    g_inputs: str = same_setting(ResidualModelSettings, "g_inputs")
+    g_start: str = same_setting(ResidualModelSettings, "g_start")
     restarts: int = same_setting(ResidualModelSettings, "restarts")
     max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
     refine_rounds: int = setting(0, lo=0, hi=20)
@@ -123,7 +125,9 @@ class Training:
     def model_settings(self, seed: int) -> ResidualModelSettings:
         """The residual model these settings describe, with the fit's seed."""
         return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend,
-                                     mean_shift=self.mean_shift, restarts=self.restarts, max_iter=self.max_iter, seed=seed)
+                                     mean_shift=self.mean_shift, g_inputs=self.g_inputs, g_start=self.g_start,
+                                     restarts=self.restarts,
+                                     max_iter=self.max_iter, seed=seed)
 
 
 @dataclass(frozen=True)

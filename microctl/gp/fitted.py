@@ -62,7 +62,8 @@ class VHGPRPrediction:
 def _stored(role: str, *, shape: tuple[str, ...] | None = None, log: bool = False, **kw: Any) -> Any:
     """A dataclass field with its storage role in the model file (see :meth:`FittedVHGPR.stored`),
     its shape in the dimensions ``n`` (training points), ``d`` (inputs), ``k`` (the inputs the
-    kernels read: the first k of d), ``p`` and ``p+1`` (noise features) and whether it is a log-parameter (both checked at load)."""
+    kernels read: the first k of d), ``kg`` (g's lengthscales: k, or the rows of g's input
+    map), ``p`` and ``p+1`` (noise features) and whether it is a log-parameter (both checked at load)."""
     return field(metadata={"store": role, "shape": shape, "log": log}, **kw)
 
 
@@ -83,7 +84,7 @@ class FittedVHGPR:
         shape (k,), k <= d: the kernels read the first k inputs, the columns beyond only g's
         prior mean (a move's context, :attr:`n_context`).
     g_log_lengthscales, g_log_signal_var, g_log_bias_var
-        Kernel of g.
+        Kernel of g; the lengthscales have shape (kg,): k, or the rows of ``g_input_map``.
     g_mu0 : float
         Prior mean of g (standardised units).
     log_lambda : ndarray, shape (n,)
@@ -136,6 +137,12 @@ class FittedVHGPR:
         log of the trend coefficients' prior variance.
     f_trend_names, f_trend_shapes : tuple of str
         The trend features' names (the noise sources they come from) and shapes.
+    g_input_map : ndarray, shape (kg, k), or None
+        g's kernel reads ``M xs[:k]`` (standardised inputs), not ``xs[:k]``
+        (:mod:`microctl.gp.kernels`: the actuators' positions and steps,
+        :func:`microctl.models.training.actuator_inputs`); None: the raw inputs.
+    g_input_names : tuple of str
+        Names of the rows of ``g_input_map`` (``q1``, ``dq1``, ...); empty without one.
     posterior_form : {"exact", "sparse"}
         ``"exact"``: the fields above as a VHGPR fit writes them. ``"sparse"``
         (:mod:`microctl.gp.sparse`): ``X`` holds the M inducing inputs, ``f_chol``/``g_chol``
@@ -154,7 +161,7 @@ class FittedVHGPR:
     f_log_lengthscales: np.ndarray = _stored("array", shape=("k",), log=True)
     f_log_signal_var: float = _stored("float", log=True)
     f_log_bias_var: float | None = _stored("optional_float", log=True)
-    g_log_lengthscales: np.ndarray = _stored("array", shape=("k",), log=True)
+    g_log_lengthscales: np.ndarray = _stored("array", shape=("kg",), log=True)
     g_log_signal_var: float = _stored("float", log=True)
     g_log_bias_var: float | None = _stored("optional_float", log=True)
     g_mu0: float = _stored("float", log=True)
@@ -188,6 +195,8 @@ class FittedVHGPR:
     f_trend_log_var: float | None = _stored("optional_float", log=True, default=None)
     f_trend_names: tuple[str, ...] = _stored("meta", default=())
     f_trend_shapes: tuple[str, ...] = _stored("meta", default=())
+    g_input_map: np.ndarray | None = _stored("optional_array", shape=("kg", "k"), default=None)
+    g_input_names: tuple[str, ...] = _stored("meta", default=())
 
     @classmethod
     def stored(cls, role: str) -> tuple[str, ...]:
@@ -233,7 +242,7 @@ class FittedVHGPR:
     @property
     def g_kernel(self) -> Kernel:
         """The kernel of g."""
-        return Kernel(self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var)
+        return Kernel(self.g_log_lengthscales, self.g_log_signal_var, self.g_log_bias_var, input_map=self.g_input_map)
 
     @property
     def g_prior_mean(self) -> LogVarianceMean:

@@ -25,6 +25,10 @@ expressions against fixed training inputs (:meth:`Kernel.casadi_column`).
 A kernel of d lengthscales reads the first d columns of its inputs: inputs may carry further
 columns that only g's prior mean reads (a move's context, such as each actuator's last
 direction of motion: :mod:`microctl.models.noise_dictionary`), which the kernels ignore.
+A kernel with an ``input_map`` M (d, d_in) reads the first d_in columns x and evaluates
+every part on ``M x`` instead: a fixed linear change of inputs (for g, the actuators'
+positions and steps, :func:`microctl.models.noise_inputs.actuator_inputs`), so that ARD
+lengthscales lie along physical directions that are diagonal in no raw input.
 """
 
 from __future__ import annotations
@@ -114,12 +118,16 @@ class KernelSpec:
         ARD linear part with variances v (d).
     trend : FeatureTrend or None
         Fixed feature trend (:mod:`microctl.gp.trend`); not in the hyperparameter block.
+    input_map : tuple of d rows, or None
+        Fixed linear map M (d, d_in) of the inputs the kernel reads (see the module
+        docstring); a tuple so that specs compare by value.
     """
 
     d: int
     bias: bool = False
     linear: bool = False
     trend: FeatureTrend | None = None
+    input_map: tuple[tuple[float, ...], ...] | None = None
 
     @property
     def size(self) -> int:
@@ -133,7 +141,8 @@ class KernelSpec:
         log_b = float(block[d + 1]) if self.bias else None
         log_v = block[d + 1 + int(self.bias):].copy() if self.linear else None
         return Kernel(log_lengthscales=block[:d].copy(), log_signal_var=float(block[d]), log_bias_var=log_b,
-                      log_linear_vars=log_v, trend=self.trend)
+                      log_linear_vars=log_v, trend=self.trend,
+                      input_map=None if self.input_map is None else np.array(self.input_map, dtype=float))
 
     def bounds(self, ls: tuple[float, float], sf2: tuple[float, float], bias: tuple[float, float],
                linear: tuple[float, float], affine: Sequence[tuple[float, float]] | None = None
@@ -163,6 +172,8 @@ class Kernel:
     log_linear_vars : ndarray, shape (d,), or None
     trend : FeatureTrend or None
         The fixed feature trend (:mod:`microctl.gp.trend`), reading the first d inputs.
+    input_map : ndarray, shape (d, d_in), or None
+        Fixed linear map of the first d_in inputs; every part reads ``M x`` (module docstring).
     """
 
     log_lengthscales: np.ndarray
@@ -170,12 +181,22 @@ class Kernel:
     log_bias_var: float | None = None
     log_linear_vars: np.ndarray | None = None
     trend: FeatureTrend | None = None
+    input_map: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        M = self.input_map
+        if M is not None and (np.ndim(M) != 2 or np.shape(M)[0] != np.size(self.log_lengthscales)):
+            raise ValueError(f"input_map has shape {np.shape(M)}; expected ({np.size(self.log_lengthscales)}, d_in), "
+                             "one row per lengthscale")
+        if M is not None and self.trend is not None:
+            raise ValueError("a kernel with an input_map cannot carry a feature trend (the trend reads raw inputs)")
 
     @property
     def spec(self) -> KernelSpec:
         """The :class:`KernelSpec` of this kernel."""
+        M = None if self.input_map is None else tuple(tuple(float(v) for v in row) for row in self.input_map)
         return KernelSpec(d=int(np.size(self.log_lengthscales)), bias=self.log_bias_var is not None,
-                          linear=self.log_linear_vars is not None, trend=self.trend)
+                          linear=self.log_linear_vars is not None, trend=self.trend, input_map=M)
 
     def pack(self) -> np.ndarray:
         """The flat hyperparameter block (inverse of :meth:`KernelSpec.unpack`)."""
@@ -202,13 +223,29 @@ class Kernel:
 
     @property
     def d(self) -> int:
-        """Number of input columns the kernel reads (the first d of its inputs)."""
+        """Number of lengthscales: the kernel's inputs (the first d columns, or ``M x``)."""
         return int(np.size(self.log_lengthscales))
 
+    @property
+    def d_in(self) -> int:
+        """Number of input columns the kernel reads (d, or the input map's columns)."""
+        return self.d if self.input_map is None else int(np.shape(self.input_map)[1])
+
     def _cols(self, X: np.ndarray) -> np.ndarray:
-        """The columns of X the kernel reads (see the module docstring), shape (m, d)."""
+        """The kernel's inputs from X (see the module docstring): its first d_in columns, mapped
+        by the input map if there is one; shape (m, d)."""
         X = np.asarray(X, dtype=float)
-        return X[:, :self.d] if X.ndim == 2 and X.shape[1] > self.d else X
+        X = X[:, :self.d_in] if X.ndim == 2 and X.shape[1] > self.d_in else X
+        return X if self.input_map is None else X @ np.asarray(self.input_map, dtype=float).T
+
+    def inputs(self, X: np.ndarray) -> np.ndarray:
+        """What the kernel reads of X (its first d_in columns, mapped if it has a map), shape (m, d)."""
+        return self._cols(X)
+
+    def _cols_ca(self, xs: ca.MX) -> ca.MX:
+        """:meth:`_cols` of a symbolic column (d', 1), d' >= d_in."""
+        xs = xs[:self.d_in] if xs.shape[0] > self.d_in else xs
+        return xs if self.input_map is None else ca.mtimes(ca.DM(np.asarray(self.input_map, dtype=float)), xs)
 
     # ---- NumPy ---------------------------------------------------------------------
     def se(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
@@ -318,6 +355,8 @@ class Kernel:
         if terms.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
             value = value + self.trend.values(Xs) @ terms.trend
             grad = grad + np.einsum("j,mjk->mk", terms.trend, self.trend.gradients(Xs))
+        if self.input_map is not None:  # d/dx of k(M x): the chain rule through the map
+            grad = grad @ np.asarray(self.input_map, dtype=float)
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad
@@ -326,7 +365,7 @@ class Kernel:
     def casadi_column(self, xs: ca.MX, X: np.ndarray) -> ca.MX:
         """k(x*, X) as an (n, 1) MX column for a symbolic input ``xs`` of shape (d, 1)."""
         X = self._cols(X)
-        xs = xs[:self.d] if xs.shape[0] > self.d else xs
+        xs = self._cols_ca(xs)
         inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
         Z = X * inv_ls
         z = xs * ca.DM(inv_ls)
@@ -345,7 +384,7 @@ class Kernel:
         """k(x*, x*) for a symbolic input ``xs`` (d, 1)."""
         out = ca.DM(self.signal_var + self.bias_var)
         v = self.linear_vars
-        xs = xs[:self.d] if xs.shape[0] > self.d else xs
+        xs = self._cols_ca(xs)
         if v is not None:
             out = out + ca.dot(ca.DM(v), xs * xs)
         if self.trend is not None:

@@ -38,9 +38,11 @@ __all__ = ["FORMAT_VERSION", "READABLE_VERSIONS", "write_model", "read_model"]
 #: only g's prior mean reads) and the optional gates of gated noise features
 #: (``g_feature_gate``, ``g_feature_gate_offset``), so that an older microctl refuses such a model.
 #: Version 5 adds f's optional feature trend (``f_trend_*``, :mod:`microctl.gp.trend`), which an
-#: older microctl would silently drop from the mean.
-FORMAT_VERSION = 5
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+#: older microctl would silently drop from the mean. Version 6 adds g's optional input map
+#: (``g_input_map``, ``meta_json["g_input_names"]``; :mod:`microctl.gp.kernels`), which an older
+#: microctl would silently drop from g's kernel.
+FORMAT_VERSION = 6
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 #: The arrays of f's feature trend (all or none).
 TREND_ARRAYS = ("f_trend_matrix", "f_trend_offset", "f_trend_params", "f_trend_scale")
 #: The posterior forms (:class:`~microctl.gp.fitted.FittedVHGPR` ``posterior_form``).
@@ -106,10 +108,10 @@ def _str_tuple(v: Any) -> tuple[str, ...]:
 
 
 #: Meta fields written only when set (older models' files stay as they were).
-_WRITTEN_WHEN_SET = ("g_feature_shapes", "g_feature_params", "f_trend_names", "f_trend_shapes")
+_WRITTEN_WHEN_SET = ("g_feature_shapes", "g_feature_params", "f_trend_names", "f_trend_shapes", "g_input_names")
 #: How the meta fields are written to JSON (default: as they are) ...
 _META_WRITE = {"x_names": list, "g_feature_names": list, "info": jsonable, "g_feature_shapes": list,
-               "f_trend_names": list, "f_trend_shapes": list,
+               "f_trend_names": list, "f_trend_shapes": list, "g_input_names": list,
                "g_feature_params": lambda v: [[float(a), float(b)] for a, b in v]}
 #: ... and read back: (converter, default when absent; no default: required).
 _META_READ: dict[str, tuple] = {
@@ -122,6 +124,7 @@ _META_READ: dict[str, tuple] = {
     "g_feature_shapes": (_str_tuple, []),
     "f_trend_names": (_str_tuple, []),
     "f_trend_shapes": (_str_tuple, []),
+    "g_input_names": (_str_tuple, []),
     "g_feature_params": (lambda v: tuple((float(a), float(b)) for a, b in v), []),
 }
 
@@ -243,7 +246,12 @@ def _check_shapes(path: Path, kw: dict, dims: dict[str, tuple[str, ...]]) -> Non
         raise DataError(f"{path}: malformed model file: {k} lengthscales for {d} inputs (expected 1 to {d})")
     trend = kw.get("f_trend_matrix")
     t = trend.shape[0] if trend is not None and trend.ndim == 2 else 0
-    size = {"n": n, "d": d, "k": k, "p": p, "p+1": p + 1, "t": t, "2": 2}
+    gmap = kw.get("g_input_map")
+    kg = gmap.shape[0] if gmap is not None and gmap.ndim == 2 else k  # g's lengthscales: k, or the map's rows
+    if gmap is not None and len(kw.get("g_input_names", ())) not in (0, kg):
+        raise DataError(f"{path}: malformed model file: {len(kw['g_input_names'])} g_input_names for a "
+                        f"{kg}-row g_input_map")
+    size = {"n": n, "d": d, "k": k, "kg": kg, "p": p, "p+1": p + 1, "t": t, "2": 2}
     shapes = {k: tuple(size[s] for s in spec) for k, spec in dims.items() if kw.get(k) is not None}
     features = [k for k in FEATURE_ARRAYS if kw.get(k) is not None]
     if features and len(features) != 3:

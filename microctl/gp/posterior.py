@@ -200,18 +200,23 @@ class Posterior:
         """Mean and variance of g at every x = [xs_s[i]; xs_u[j]], shapes (m1, m2).
 
         ``xs_u`` carries the model's context columns after the pose, if it has any (they are
-        constant over a move's candidates). g's kernel (ARD SE plus a bias) is separable over
-        the two blocks of inputs, so
+        constant over a move's candidates). g's kernel (ARD SE plus a bias) on the raw inputs is
+        separable over the two blocks of inputs, so
         ``k([s_i; u_j], X) . beta = sf2 (A_s o beta) A_u^T + bias sum(beta)``: one (m1 x n)(n x m2)
         product; the prior mean is evaluated on the pairwise linear features (a sum of an s
-        part and a u part). The exact GP variance, when not negligible, row by row.
+        part and a u part). The exact GP variance, when not negligible, row by row. A kernel
+        with an input map (:mod:`microctl.gp.kernels`) is not separable: its mean row by row.
         """
         ns = xs_s.shape[1]
         kg, X, beta = self.g_kernel, self.X, np.asarray(self.g_beta, dtype=float)
-        ls, dk = np.asarray(kg.log_lengthscales, dtype=float), kg.d  # a context beyond dk: prior mean only
-        A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
-        A_u = se_matrix(xs_u[:, :dk - ns], X[:, ns:dk], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
-        mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
+        if kg.input_map is None:
+            ls, dk = np.asarray(kg.log_lengthscales, dtype=float), kg.d  # a context beyond dk: prior mean only
+            A_s = se_matrix(xs_s, X[:, :ns], ls[:ns], 0.0, flush=_SE_FLUSH)                # (m1, n)
+            A_u = se_matrix(xs_u[:, :dk - ns], X[:, ns:dk], ls[ns:], kg.log_signal_var, flush=_SE_FLUSH)  # (m2, n), carries sf2
+            mean = (A_s * beta[None, :]) @ A_u.T + kg.bias_var * float(beta.sum())
+        else:  # a mapped kernel mixes the blocks (a step reads both): k(x, X) . beta row by row of xs_s
+            mean = np.vstack([kg.matrix(np.hstack([np.broadcast_to(s, (xs_u.shape[0], ns)), xs_u]), X) @ beta
+                              for s in xs_s])
         prior, prior_var = self._prior_pairs(xs_s, xs_u, mean.shape)
         mean = mean + prior + self.log_y2
         var = prior_var

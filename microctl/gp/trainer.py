@@ -25,11 +25,15 @@ from microctl.gp.homoscedastic import fit_homoscedastic, init_mean_coef
 from microctl.gp.kernels import KernelSpec
 from microctl.gp.noise_models import NoiseModel, noise_model_class
 from microctl.gp.noise_prior import NoiseFeatures
+from microctl.gp.noise_start import log_residual_start
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.trend import FeatureTrend
 from microctl.util.blas import single_thread_blas
 
-__all__ = ["VHGPR", "default_max_iter"]
+__all__ = ["VHGPR", "default_max_iter", "G_STARTS"]
+
+#: Where g starts (:class:`VHGPR` ``g_start``).
+G_STARTS = ("f", "both", "residuals")
 
 
 def default_max_iter(n: int) -> int:
@@ -152,7 +156,7 @@ class VHGPR:
         Measured on 24 simulated rigs (scripts/bench_rigs.py, docs/controller.md): a
         Gaussian approximation cannot tell a small friction from zero on an actuator the data
         barely isolate, and the quantile objective then avoids the truly quietest poses.
-    g_start : {"both", "f"}
+    g_start : {"both", "f", "residuals"}
         Where g's lengthscales start. ``"both"`` (default): the runs above start at the
         homoscedastic fit's lengthscales of f, and one more run starts from unit lengthscales
         (standardised inputs). ``"f"``: only the former. A noise that depends on an input the mean
@@ -162,7 +166,10 @@ class VHGPR:
         for one more run's time (docs/generated/bench_vhgpr.md, the scale rows). The stage's
         residual model (:mod:`microctl.models.training`) sets it explicitly: ``"f"`` for the exact
         form, where its noise model's parametric prior mean carries the physical inputs,
-        ``"both"`` for the sparse form's hyperparameters.
+        ``"both"`` for the sparse form's hyperparameters. ``"residuals"``: as ``"f"``, and one more
+        run starts g from a GP fitted to the log squared residuals of the start's f
+        (:mod:`microctl.gp.noise_start`): from the usual start g's signal variance tends to
+        collapse to its bound before g's mean has moved, whatever the noise does.
     warm_start : FittedVHGPR, optional
         A model fitted to the same kind of data whose hyperparameters start the fit instead of
         the homoscedastic GP: one run (``n_restarts`` and ``g_start`` are not used), f's and g's
@@ -170,6 +177,12 @@ class VHGPR:
         with some noise sources dropped starts where the larger fit ended), the variational
         parameters from the start when it was fitted to these very points, else at their usual
         start. Needs ``se`` "on" or "off" (the start's choice), and kernels of the same form.
+    g_input_map : array_like, shape (kg, k), optional
+        g's kernel reads ``A x``, not the k inputs x (original units; :mod:`microctl.gp.kernels`,
+        :mod:`microctl.models.noise_inputs`), stored standardised with each row scaled to unit
+        spread over the training inputs. None (default): the raw inputs.
+    g_input_names : sequence of str, optional
+        A name per row of ``g_input_map``.
     """
 
     def __init__(
@@ -190,6 +203,8 @@ class VHGPR:
         propagate_noise_parameter_uncertainty: bool = False,
         g_start: str = "both",
         warm_start: FittedVHGPR | None = None,
+        g_input_map: Any = None,
+        g_input_names: tuple[str, ...] = (),
     ) -> None:
         if int(n_restarts) != n_restarts or n_restarts < 1:
             raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
@@ -210,8 +225,8 @@ class VHGPR:
             linear = tuple(int(i) for i in linear)
             if not linear or min(linear) < 0:
                 raise ConfigError(f"VHGPR: linear must be a bool or non-empty input indices, got {linear!r}")
-        if g_start not in ("f", "both"):
-            raise ConfigError(f"VHGPR: g_start must be 'f' or 'both', got {g_start!r}")
+        if g_start not in G_STARTS:
+            raise ConfigError(f"VHGPR: g_start must be one of {', '.join(map(repr, G_STARTS))}, got {g_start!r}")
         if se not in ("on", "off", "auto"):
             raise ConfigError(f"VHGPR: se must be 'on', 'off' or 'auto', got {se!r}")
         if se != "on" and linear is False:
@@ -219,6 +234,14 @@ class VHGPR:
                               "without it f would be a constant")
         if warm_start is not None and se == "auto":
             raise ConfigError("VHGPR: a warm start needs se 'on' or 'off' (the start model's choice), not 'auto'")
+        if g_input_map is not None:
+            g_input_map = np.array(g_input_map, dtype=float)
+            if g_input_map.ndim != 2 or g_input_map.shape[0] < 1 or not np.all(np.isfinite(g_input_map)):
+                raise ConfigError(f"VHGPR: g_input_map must be a finite 2-D array (kg, k), got shape {g_input_map.shape}")
+            if g_input_names and len(g_input_names) != g_input_map.shape[0]:
+                raise ConfigError(f"VHGPR: {len(g_input_names)} g_input_names for {g_input_map.shape[0]} rows of g_input_map")
+        self.g_input_map = g_input_map
+        self.g_input_names = tuple(str(nm) for nm in g_input_names) if g_input_map is not None else ()
         self.se = se
         self.g_start = g_start
         self.warm_start = warm_start
@@ -268,6 +291,10 @@ class VHGPR:
             raise DataError(f"linear trend on input column {max(self.linear)}; X has {X.shape[1]} columns")
         if nf is not None and np.asarray(nf.matrix).shape[1] != X.shape[1]:
             raise DataError(f"noise features act on {np.asarray(nf.matrix).shape[1]} inputs; X has {X.shape[1]} columns")
+        k_read = X.shape[1] - (0 if nf is None else int(nf.context))
+        if self.g_input_map is not None and self.g_input_map.shape[1] != k_read:
+            raise DataError(f"g_input_map acts on {self.g_input_map.shape[1]} inputs; the kernels read {k_read} "
+                            f"columns of X")
         with single_thread_blas():
             return self._fit(X, y, t0)
 
@@ -292,7 +319,7 @@ class VHGPR:
         # a linear trend is affine: f's kernel gets the constant (bias) term with it
         f_spec = KernelSpec(d=d, bias=self.bias or self.linear is not False, linear=self.linear is not False,
                             trend=self._trend(X[:, :d], data["x_mean"][:d], data["x_scale"][:d]))
-        g_spec = KernelSpec(d=d, bias=self.bias)
+        g_spec = self._g_spec(Xs[:, :d], data["x_scale"][:d])
         lin_bounds = self._linear_bounds(d)
         p = 0 if Phi is None else Phi.shape[1]
         if self.warm_start is None:
@@ -303,8 +330,9 @@ class VHGPR:
             kern = gp[:-1]
             # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
             # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
-            # g's kernel: f's lengthscales, unit signal variance.
-            g_kern = np.concatenate([kern[:d], [0.0], [-4.0] if self.bias else []])
+            # g's kernel: f's lengthscales (unit ones on mapped inputs, of unit spread), unit signal variance.
+            g_kern = np.concatenate([kern[:d] if g_spec.input_map is None else np.zeros(g_spec.d), [0.0],
+                                     [-4.0] if self.bias else []])
             mean0 = init_mean_coef(loo, None if Phi is None else Phi[used], float(gp[-1]))
             x_init = np.concatenate([np.full(n, math.log(0.5)), kern, g_kern, mean0])
         else:
@@ -316,13 +344,11 @@ class VHGPR:
         deadline = None if self.max_time is None else t0 + float(self.max_time)
         layout, best, runs, selection = self._fit_variants(x_init, Xs, ys, f_spec, g_spec, p, lin_bounds, rng,
                                                            deadline, max_iter, Phi)
-        theta = best[1]
-        F, _, state = mv_bound(theta, Xs, ys, layout, want_grad=False, want_state=True, Phi=Phi)
+        F, _, state = mv_bound(theta := best[1], Xs, ys, layout, want_grad=False, want_state=True, Phi=Phi)
         log_c = theta[layout.mean_slice]
         coef_cov = mean_coef_covariance(state, log_c, Phi) if Phi is not None else None
         info = self._info(state, runs, gp, kern, selection, coef_cov, log_c, max_iter, t0)
-        kf = f_spec.unpack(theta[layout.f_slice])
-        kg = g_spec.unpack(theta[layout.g_slice])
+        kf, kg = f_spec.unpack(theta[layout.f_slice]), g_spec.unpack(theta[layout.g_slice])
         arrays = {
             "x_mean": data["x_mean"], "x_scale": data["x_scale"], "X": Xs,
             "f_log_lengthscales": np.array(kf.log_lengthscales), "g_log_lengthscales": np.array(kg.log_lengthscales),
@@ -335,7 +361,8 @@ class VHGPR:
             "g_log_feature_coef": None if Phi is None else np.array(log_c[1:]),
             "g_mean_coef_cov": coef_cov if self.propagate else None,
             "g_feature_gate": None if gate is None else gate[0], "g_feature_gate_offset": None if gate is None else gate[1],
-            **trend_fields(f_spec.trend),
+            "g_input_map": None if g_spec.input_map is None else np.array(g_spec.input_map, dtype=float),
+            **trend_fields(f_spec.trend), "g_input_names": self.g_input_names,
         }
         for a in list(arrays.values()) + [v for v in optional.values() if isinstance(v, np.ndarray)]:
             freeze(a)
@@ -352,6 +379,18 @@ class VHGPR:
             f_trend_shapes=() if f_spec.trend is None else f_spec.trend.features.shapes,
         )
 
+    def _g_spec(self, Xs: np.ndarray, x_scale: np.ndarray) -> KernelSpec:
+        """g's kernel spec on the standardised inputs Xs (n, k); its input map, if any, is ``A`` in
+        original units times the inputs' scales, each row divided by its spread over Xs (1 where it
+        has none)."""
+        if self.g_input_map is None:
+            return KernelSpec(d=Xs.shape[1], bias=self.bias)
+        A = self.g_input_map * x_scale[None, :]
+        spread = (Xs @ A.T).std(axis=0)
+        spread[spread <= 1e-12] = 1.0
+        M = A / spread[:, None]
+        return KernelSpec(d=M.shape[0], bias=self.bias, input_map=tuple(tuple(float(v) for v in row) for row in M))
+
     def _trend(self, X: np.ndarray, x_mean: np.ndarray, x_scale: np.ndarray) -> FeatureTrend | None:
         """f's feature trend from ``mean_features`` rescaled on the training inputs X (original units)."""
         mf = self.mean_features
@@ -364,7 +403,10 @@ class VHGPR:
         """The initial point from ``warm_start`` (see the class), shape (layout size,)."""
         w = self.warm_start
         kf, kg = w.f_kernel, w.g_kernel
-        if replace(kf.spec, trend=None) != replace(f_spec, trend=None) or kg.spec != g_spec:  # a trend may differ
+        # a trend may differ, and g's input map (standardised on other rows) by its scaling
+        if replace(kf.spec, trend=None) != replace(f_spec, trend=None) or (
+                replace(kg.spec, input_map=None) != replace(g_spec, input_map=None)
+                or (kg.spec.input_map is None) != (g_spec.input_map is None)):
             raise ConfigError(f"VHGPR: the warm start's kernels ({kf.spec}, {kg.spec}) are not of this fit's form "
                               f"({f_spec}, {g_spec})")
         coef = {} if w.g_log_feature_coef is None else dict(zip(w.g_feature_names, np.asarray(w.g_log_feature_coef)))
@@ -446,12 +488,15 @@ class VHGPR:
         x_init = np.clip(x_init, lo, hi)
         runs: list[dict] = []
         best: tuple[float, np.ndarray] | None = None
-        starts: list[int | str] = [*range(self.n_restarts), *(["g_unit"] if self.g_start == "both" else [])]
+        starts: list[int | str] = [*range(self.n_restarts), *(["g_unit"] if self.g_start == "both" else []),
+                                   *(["g_resid"] if self.g_start == "residuals" else [])]
         if self.warm_start is not None:  # one run, from the warm start
             starts = [0]
         for k in starts:
             if k == 0:
                 x0 = x_init
+            elif k == "g_resid":  # g_start="residuals": one more run, g from the log squared residuals
+                x0 = log_residual_start(x_init, Xs, ys, layout, Phi, rng)
             elif k == "g_unit":  # g_start="both": one more run from unit lengthscales of g
                 x0 = x_init.copy()
                 x0[layout.g_slice.start:layout.g_slice.start + layout.g.d] = 0.0

@@ -27,6 +27,7 @@ from microctl.models.direction import log_directions
 from microctl.models.eafm import bind_to_stage, context_names
 from microctl.models.mean_shift import trend_features, with_mean_shift
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
+from microctl.models.noise_inputs import G_INPUTS, g_input_map
 from microctl.models.noise_summary import noise_summary
 from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, tail_bound
 from microctl.util.fields import setting, validate_settings
@@ -186,6 +187,13 @@ class ResidualModelSettings:
         True (default): with the ``dictionary`` noise model, the mean correction f gets a trend
         in the selected noise sources' features (:mod:`microctl.models.mean_shift`: the mean
         shift that scatter causes); False: none.
+    g_inputs : str
+        What g's GP reads (:mod:`microctl.models.noise_inputs`): ``"raw"`` (default: x = [s; u],
+        eq. 3) or ``"actuators"`` (each actuator's position q_i and step dq_i, ARD on each).
+    g_start : str
+        Where the exact form's fit starts g (:class:`~microctl.gp.trainer.VHGPR`): ``"f"``
+        (default: at the homoscedastic GP) or ``"residuals"`` (one more run, from a GP on the log
+        squared residuals, :mod:`microctl.gp.noise_start`).
     """
 
     noise_model: str = setting("dictionary", choices=NOISE_MODELS)
@@ -198,6 +206,8 @@ class ResidualModelSettings:
     gp: str = setting("auto", choices=GP_FORMS)
     inducing: int = setting(256, lo=2, hi=5000)
     mean_shift: bool = setting(True)
+    g_inputs: str = setting("raw", choices=tuple(G_INPUTS))
+    g_start: str = setting("f", choices=("f", "residuals"))
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
@@ -286,13 +296,15 @@ def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSetting
     # the trend acts on the pose u = x[n_s:] (eq. 3: x = [s; u])
     linear = tuple(range(afm.n_s, afm.n_s + afm.n_p)) if st.linear_trend else False
     sparse = uses_sparse(len(data.y), st)
-    trainer = VHGPR(linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
+    g_map, g_names = g_input_map(st.g_inputs, afm)
+    trainer = VHGPR(g_input_map=g_map, g_input_names=g_names,
+                    linear=linear, linear_prior_var=LINEAR_PRIOR_VAR if st.linear_trend else None,
                     se=st.se if st.linear_trend else "on", noise_features=features, noise_model=noise_model,
                     mean_features=mean_features,
                     n_restarts=st.restarts,
                     propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
                     max_iter=st.max_iter, random_state=st.seed, max_time=max_time,
-                    g_start="both" if sparse else "f", warm_start=warm_start)
+                    g_start="both" if sparse else st.g_start, warm_start=warm_start)
     if sparse:
         from microctl.gp.sparse import SparseVHGPR
 

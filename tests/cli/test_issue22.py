@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from microctl.cli import main
+from microctl.gp.fitted import FittedVHGPR
 from microctl.measurement.log import read_log
 from microctl.stage.config import load_stage_config
 
@@ -574,3 +575,23 @@ def test_diagnose_refuses_readings_on_another_scale(tmp_path, capsys):
     capsys.readouterr()
     rc = main(["diagnose", str(log), "--config", str(SIM), "--out", str(tmp_path / "d"), "--quiet"])
     _err_line(capsys, rc, contains=(f"{log}: column 't'", "another unit"))
+
+
+def test_train_g_inputs_and_g_start_reach_the_model_file(tmp_path, capsys, planted_log, table1_path):
+    """``--g-inputs actuators --g-start residuals``: the model file carries g's input map (one
+    name per row: each actuator's position, then its step) and the fit's extra run; a wrong
+    choice names the option and the valid ones."""
+    out = tmp_path / "m.npz"
+    rc = main(["train", str(planted_log), "--config", str(table1_path), "-o", str(out), "--restarts", "1",
+               "--noise-model", "hgp", "--g-inputs", "actuators", "--g-start", "residuals", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    model = FittedVHGPR.load(out)
+    assert model.g_input_names == ("q1", "q2", "q3", "q4", "dq1", "dq2", "dq3", "dq4")
+    assert model.g_input_map.shape == (8, 8)
+    assert [r["start"] for r in model.info["runs"]][-1] == "g_resid"
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["train", str(planted_log), "--config", str(table1_path), "-o", str(tmp_path / "x.npz"),
+              "--g-inputs", "loads"])
+    err = capsys.readouterr().err
+    assert "--g-inputs" in err and "actuators" in err

@@ -13,6 +13,7 @@ from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.floor_check import with_floor_check
 from microctl.models.outlier_screen import describe_screen
+from microctl.models.noise_inputs import G_INPUTS
 from microctl.models.training import (
     GP_FORMS,
     AUTO_SPARSE_ROWS,
@@ -54,6 +55,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-mean-shift", dest="mean_shift", action="store_false",
                    help="no trend in the selected noise sources in the mean correction (the mean shift that "
                    "scatter causes, docs/vhgpr.md)")
+    p.add_argument("--g-inputs", choices=tuple(G_INPUTS), default=d.g_inputs,
+                   help=f"what the noise GP reads (default {d.g_inputs}: x = [s_prev; u]; actuators: each actuator's "
+                   "position and step, docs/vhgpr.md)")
+    p.add_argument("--g-start", choices=("f", "residuals"), default=d.g_start,
+                   help=f"where the noise GP's fit starts (default {d.g_start}: the homoscedastic GP; residuals: "
+                   "one more run from the log squared residuals, docs/vhgpr.md)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
                    help=f"the GP's form (default {d.gp}: exact up to {AUTO_SPARSE_ROWS} rows, sparse above)")
     p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
@@ -72,7 +79,8 @@ def _run(args: argparse.Namespace) -> int:
     try:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed, gp=args.gp,
-                                         inducing=args.inducing, mean_shift=args.mean_shift)
+                                         inducing=args.inducing, mean_shift=args.mean_shift, g_inputs=args.g_inputs,
+                                         g_start=args.g_start)
     except SettingError as exc:  # name the option, not the field
         raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
