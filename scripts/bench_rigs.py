@@ -150,6 +150,14 @@ METHODS = {
     # the default with g's GP on the actuators' positions and steps (microctl.models.noise_inputs)
     "g_actuators": Method("g_actuators", "covering", ResidualModelSettings(g_inputs="actuators"),
                           ControllerSettings()),
+    # ... and g's fit started also from the log squared residuals (microctl.gp.noise_start)
+    "g_act_res": Method("g_act_res", "covering", ResidualModelSettings(g_inputs="actuators", g_start="residuals"),
+                        ControllerSettings()),
+    # the paper's constant prior mean, g's GP on the actuators and started from the residuals:
+    # how much of the repeatability g's GP learns without the dictionary
+    "hgp_act_res": Method("hgp_act_res", "covering",
+                          ResidualModelSettings(noise_model="hgp", g_inputs="actuators", g_start="residuals"),
+                          ControllerSettings()),
 }
 SEED_SET_STRIDE = 10_000
 #: Controllers a seed-set run keeps (those the bars of microctl.experiments.bars judge).

@@ -32,8 +32,9 @@ from microctl.util.blas import single_thread_blas
 
 __all__ = ["VHGPR", "default_max_iter", "G_STARTS"]
 
-#: Where g starts (:class:`VHGPR` ``g_start``).
-G_STARTS = ("f", "both", "residuals")
+G_STARTS = ("f", "both", "residuals")  # where g starts (VHGPR g_start)
+#: The residual run wins only by this many BIC penalties of g's kernel, (kg + 1)/2 log n (docs/vhgpr.md).
+RESIDUAL_RUN_HANDICAP = 1.0
 
 
 def default_max_iter(n: int) -> int:
@@ -169,7 +170,8 @@ class VHGPR:
         ``"both"`` for the sparse form's hyperparameters. ``"residuals"``: as ``"f"``, and one more
         run starts g from a GP fitted to the log squared residuals of the start's f
         (:mod:`microctl.gp.noise_start`): from the usual start g's signal variance tends to
-        collapse to its bound before g's mean has moved, whatever the noise does.
+        collapse to its bound before g's mean has moved, whatever the noise does. That run
+        wins only if its bound beats the others' by g's kernel's BIC penalty, (kg + 1)/2 log n.
     warm_start : FittedVHGPR, optional
         A model fitted to the same kind of data whose hyperparameters start the fit instead of
         the homoscedastic GP: one run (``n_restarts`` and ``g_start`` are not used), f's and g's
@@ -514,7 +516,9 @@ class VHGPR:
             run["se"] = not layout.se_off
             x_run = run.pop("x", None)
             runs.append(run)
-            if run["status"] == "ok" and (best is None or run["bound"] > best[0]):
+            # the run from the residuals pays for g's kernel (kg + 1 hyperparameters) to win
+            handicap = RESIDUAL_RUN_HANDICAP * (layout.g.d + 1) / 2 * math.log(n) if k == "g_resid" else 0.0
+            if run["status"] == "ok" and (best is None or run["bound"] - handicap > best[0]):
                 best = (run["bound"], x_run)
         if best is None:
             reasons = "; ".join(f"run {r['start']}: {r.get('reason', r['status'])}" for r in runs)
