@@ -140,7 +140,7 @@ class FittedVHGPR:
     g_input_map : ndarray, shape (kg, k), or None
         g's kernel reads ``M xs[:k]`` (standardised inputs), not ``xs[:k]``
         (:mod:`microctl.gp.kernels`: the actuators' positions and steps,
-        :func:`microctl.models.training.actuator_inputs`); None: the raw inputs.
+        :func:`microctl.models.noise_inputs.actuator_inputs`); None: the raw inputs.
     g_input_names : tuple of str
         Names of the rows of ``g_input_map`` (``q1``, ``dq1``, ...); empty without one.
     posterior_form : {"exact", "sparse"}
