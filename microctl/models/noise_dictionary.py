@@ -67,6 +67,7 @@ import numpy as np
 
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.models.afm import AnalyticForwardModel
+from microctl.models.noise_inputs import step_map
 from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
 from microctl.util.blas import single_thread_blas
@@ -140,10 +141,10 @@ def candidate_features(afm: AnalyticForwardModel, *, context: bool = False) -> S
         names.append(name)
         gates.append(np.zeros(d) if gate is None else gate)
 
+    steps = step_map(afm)  # dq_i = K_i u - q_i,prev on x = [s; u]
     for i, nm in enumerate(afm.actuator_names):
         step = np.zeros(d)
-        step[1 + i] = -1.0
-        step[pose] = afm.K[i]
+        step[:n_s + n_p] = steps[i]
         end = np.zeros(d)
         end[pose] = afm.K[i]
         add(step, 0.0, "sq", (0.0, 0.0), f"d{nm}:sq")

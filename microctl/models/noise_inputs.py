@@ -24,7 +24,21 @@ import numpy as np
 
 from microctl.models.afm import AnalyticForwardModel
 
-__all__ = ["G_INPUTS", "actuator_inputs", "g_input_map"]
+__all__ = ["G_INPUTS", "G_STARTS", "actuator_inputs", "g_input_map", "step_map"]
+
+
+def step_map(afm: AnalyticForwardModel) -> np.ndarray:
+    """The steps ``dq_i = K_i u - q_i,prev`` (eq. 12) as a map of x = [t_prev; q_prev; u] (eq. 3).
+
+    Returns
+    -------
+    ndarray, shape (n_q, n_s + n_p)
+        Row i: -1 at ``q_i,prev``, K_i on u.
+    """
+    A = np.zeros((afm.n_q, afm.n_s + afm.n_p))
+    A[np.arange(afm.n_q), 1 + np.arange(afm.n_q)] = -1.0  # s = [t_prev; q_prev]
+    A[:, afm.n_s:] = afm.K
+    return A
 
 
 def actuator_inputs(afm: AnalyticForwardModel) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -33,17 +47,15 @@ def actuator_inputs(afm: AnalyticForwardModel) -> tuple[np.ndarray, tuple[str, .
     Returns
     -------
     A : ndarray, shape (2 n_q, n_s + n_p)
-        Rows 0..n_q-1: ``q_i = K_i u``; rows n_q..2 n_q-1: ``dq_i = K_i u - q_i,prev``.
+        Rows 0..n_q-1: ``q_i = K_i u``; rows n_q..2 n_q-1: ``dq_i = K_i u - q_i,prev``
+        (:func:`step_map`).
     names : tuple of str
-        ``q<name>`` and ``dq<name>`` per actuator.
+        The actuators' names (``q1``, ...), then each with a ``d`` in front (``dq1``, ...).
     """
-    nq, ns = afm.n_q, afm.n_s
-    A = np.zeros((2 * nq, ns + afm.n_p))
-    A[:nq, ns:] = afm.K
-    A[nq:, ns:] = afm.K
-    A[nq + np.arange(nq), 1 + np.arange(nq)] = -1.0  # s = [t_prev; q_prev]
-    names = tuple(afm.actuator_names) + tuple(f"d{a}" for a in afm.actuator_names)  # q1.., dq1..
-    return A, names
+    positions = np.zeros((afm.n_q, afm.n_s + afm.n_p))
+    positions[:, afm.n_s:] = afm.K
+    names = tuple(afm.actuator_names) + tuple(f"d{a}" for a in afm.actuator_names)
+    return np.vstack([positions, step_map(afm)]), names
 
 
 #: The choices of ``g_inputs``: a map builder, or None for the raw inputs.
@@ -51,6 +63,11 @@ G_INPUTS: dict[str, Callable[[AnalyticForwardModel], tuple[np.ndarray, tuple[str
     "raw": None,
     "actuators": actuator_inputs,
 }
+
+
+#: The choices of the residual model's ``g_start`` (:class:`~microctl.gp.trainer.VHGPR`: the
+#: exact form's start of g; the sparse form always uses ``"both"``).
+G_STARTS = ("f", "residuals")
 
 
 def g_input_map(name: str, afm: AnalyticForwardModel) -> tuple[np.ndarray | None, tuple[str, ...]]:

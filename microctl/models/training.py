@@ -27,7 +27,7 @@ from microctl.models.direction import log_directions
 from microctl.models.eafm import bind_to_stage, context_names
 from microctl.models.mean_shift import trend_features, with_mean_shift
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
-from microctl.models.noise_inputs import G_INPUTS, g_input_map
+from microctl.models.noise_inputs import G_INPUTS, G_STARTS, g_input_map, step_map
 from microctl.models.noise_summary import noise_summary
 from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, tail_bound
 from microctl.util.fields import setting, validate_settings
@@ -207,7 +207,7 @@ class ResidualModelSettings:
     inducing: int = setting(256, lo=2, hi=5000)
     mean_shift: bool = setting(True)
     g_inputs: str = setting("raw", choices=tuple(G_INPUTS))
-    g_start: str = setting("f", choices=("f", "residuals"))
+    g_start: str = setting("f", choices=G_STARTS)
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
@@ -241,10 +241,7 @@ def actuator_step_features(afm: AnalyticForwardModel, actuators: Sequence[int] |
         ``matrix`` shape (p, n_s + n_p): row j has -1 at ``q_i,prev`` and K_i on u.
     """
     idx = np.arange(afm.n_q) if actuators is None else np.array(sorted(set(actuators)), dtype=int) - 1
-    A = np.zeros((idx.size, afm.n_s + afm.n_p))
-    A[np.arange(idx.size), 1 + idx] = -1.0  # s = [t_prev; q_prev]
-    A[:, afm.n_s:] = afm.K[idx]
-    return NoiseFeatures(A, np.zeros(idx.size), tuple(f"d{afm.actuator_names[i]}" for i in idx))
+    return NoiseFeatures(step_map(afm)[idx], np.zeros(idx.size), tuple(f"d{afm.actuator_names[i]}" for i in idx))
 
 
 def noise_features_for(afm: AnalyticForwardModel) -> NoiseFeatures:

@@ -13,7 +13,7 @@ from microctl.measurement.scale import check_reading_scale
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.floor_check import with_floor_check
 from microctl.models.outlier_screen import describe_screen
-from microctl.models.noise_inputs import G_INPUTS
+from microctl.models.noise_inputs import G_INPUTS, G_STARTS
 from microctl.models.training import (
     GP_FORMS,
     AUTO_SPARSE_ROWS,
@@ -58,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--g-inputs", choices=tuple(G_INPUTS), default=d.g_inputs,
                    help=f"what the noise GP reads (default {d.g_inputs}: x = [s_prev; u]; actuators: each actuator's "
                    "position and step, docs/vhgpr.md)")
-    p.add_argument("--g-start", choices=("f", "residuals"), default=d.g_start,
+    p.add_argument("--g-start", choices=G_STARTS, default=d.g_start,
                    help=f"where the noise GP's fit starts (default {d.g_start}: the homoscedastic GP; residuals: "
                    "one more run from the log squared residuals, docs/vhgpr.md)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
