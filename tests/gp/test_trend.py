@@ -15,6 +15,7 @@ from microctl.gp.kernels import Kernel
 from microctl.gp.shaped_features import GATED, SHAPES, ShapedFeatures
 from microctl.gp.trainer import VHGPR
 from microctl.gp.trend import FeatureTrend
+from kernel_checks import assert_cross_grad_matches_fd
 
 UNGATED = tuple(k for k in SHAPES if k not in GATED)
 
@@ -75,15 +76,7 @@ def test_kernel_with_trend_adds_v_phi_phi_and_casadi_equals_numpy():
         np.testing.assert_allclose(np.array(c).ravel(), k.matrix(row[None], Xb).ravel(), rtol=1e-11)
         np.testing.assert_allclose(float(dg), k.diag(row[None])[0], rtol=1e-11)
     # k(Xs, X) w and its input gradient (the controller's seeding) against central differences
-    w = rng.normal(size=9)
-    val, grad = k.cross_grad(Xa, k.cross_terms(Xb, w))
-    np.testing.assert_allclose(val, k.matrix(Xa, Xb) @ w, rtol=1e-11)
-    h = 1e-6
-    for c in range(4):
-        E = np.zeros(4)
-        E[c] = h
-        fd = (k.matrix(Xa + E, Xb) @ w - k.matrix(Xa - E, Xb) @ w) / (2 * h)
-        np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
+    assert_cross_grad_matches_fd(k, Xa, Xb, rng.normal(size=9), rtol=1e-5, atol=1e-6)
 
 
 def test_cross_grad_reads_the_training_side_from_its_precomputed_terms():
