@@ -324,11 +324,12 @@ class VHGPR:
         g_spec = self._g_spec(Xs[:, :d], data["x_scale"][:d])
         lin_bounds = self._linear_bounds(d)
         p = 0 if Phi is None else Phi.shape[1]
+        init_cost: dict = {}  # what the homoscedastic initialisation cost (starts, evaluations, time_s)
         if self.warm_start is None:
             # the start is the homoscedastic GP without f's feature trend: a homoscedastic GP given a
             # trend along a heteroscedastic noise's direction can prefer to interpolate the data (noise
             # variance at its floor), a start the VHGPR does not leave (tests/gp/test_trend.py)
-            gp, loo, used = fit_homoscedastic(Xs[:, :d], ys, replace(f_spec, trend=None), rng, lin_bounds)
+            gp, loo, used = fit_homoscedastic(Xs[:, :d], ys, replace(f_spec, trend=None), rng, lin_bounds, init_cost)
             kern = gp[:-1]
             # Initial point [N]: f's kernel from the homoscedastic GP, Lambda = 1/2 (so mu = m);
             # g's prior mean from its leave-one-out residuals (mu0 = its log noise without features);
@@ -349,7 +350,7 @@ class VHGPR:
         F, _, state = mv_bound(theta := best[1], Xs, ys, layout, want_grad=False, want_state=True, Phi=Phi)
         log_c = theta[layout.mean_slice]
         coef_cov = mean_coef_covariance(state, log_c, Phi) if Phi is not None else None
-        info = self._info(state, runs, gp, kern, selection, coef_cov, log_c, max_iter, t0)
+        info = self._info(state, runs, gp, kern, selection, coef_cov, log_c, max_iter, t0, init_cost)
         kf, kg = f_spec.unpack(theta[layout.f_slice]), g_spec.unpack(theta[layout.g_slice])
         arrays = {
             "x_mean": data["x_mean"], "x_scale": data["x_scale"], "X": Xs,
@@ -448,9 +449,8 @@ class VHGPR:
             layout, best, runs = fits[0]
         return layout, best, runs, selection
 
-    def _info(self, state: dict, runs: list[dict], gp: np.ndarray | None, kern: np.ndarray | None,
-              selection: dict | None,
-              coef_cov: np.ndarray | None, log_c: np.ndarray, max_iter: int, t0: float) -> dict:
+    def _info(self, state: dict, runs: list[dict], gp: np.ndarray | None, kern: np.ndarray | None, selection: dict | None,
+              coef_cov: np.ndarray | None, log_c: np.ndarray, max_iter: int, t0: float, init_cost: dict) -> dict:
         """The fit's diagnostics record (``FittedVHGPR.info``)."""
         nf = self.noise_features
         noise_parameters = None
@@ -466,7 +466,7 @@ class VHGPR:
             "iterations": int(sum(r.get("iterations", 0) for r in runs)),
             "evaluations": int(sum(r.get("evaluations", 0) for r in runs)),
             "homoscedastic_init": (None if gp is None else
-                                   {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern]}),
+                                   {"log_noise_var": float(gp[-1]), "kernel": [float(v) for v in kern], **init_cost}),
             "warm_start": self.warm_start is not None,
             "se_selection": selection,
             "noise_parameters": noise_parameters,

@@ -642,3 +642,32 @@ def test_default_finds_a_noise_driven_by_an_input_the_mean_ignores(seed: int) ->
     m = VHGPR().fit(X, y)
     assert float(np.corrcoef(m.predict(Xt).g_mean, gt)[0, 1]) > 0.9
     assert int(np.argmin(m.g_log_lengthscales)) == 2
+
+
+def test_homoscedastic_init_records_its_cost_without_changing_the_fit(monkeypatch) -> None:
+    """The init's record (``info["homoscedastic_init"]``: starts, evaluations, time_s) counts what
+    ran, here every call of the likelihood counted independently, and asking for it changes
+    nothing: the initial point is bit for bit the one without the record."""
+    rng = np.random.default_rng(7)
+    X = rng.uniform(-1.0, 1.0, (60, 2))
+    y = np.sin(2.0 * X[:, 0]) + 0.1 * rng.standard_normal(60)
+    spec = KernelSpec(d=2)
+    plain = homoscedastic.fit_homoscedastic(X, y, spec, np.random.default_rng(0))
+    calls = {"n": 0}
+    loglik = homoscedastic.gp_loglik
+
+    def counted(*args, **kwargs):
+        calls["n"] += 1
+        return loglik(*args, **kwargs)
+
+    monkeypatch.setattr(homoscedastic, "gp_loglik", counted)
+    record: dict = {}
+    recorded = homoscedastic.fit_homoscedastic(X, y, spec, np.random.default_rng(0), record=record)
+    for a, b in zip(plain, recorded):
+        np.testing.assert_array_equal(a, b)
+    assert record["starts"] == len(homoscedastic.INIT_STARTS) == 2
+    assert record["evaluations"] == calls["n"] > 2
+    assert record["time_s"] > 0.0
+    calls["n"] = 0  # the trainer's init (on the standardised data) is counted the same way
+    info = VHGPR(n_restarts=1, g_start="f", max_iter=5).fit(X, y).info["homoscedastic_init"]
+    assert info["starts"] == 2 and info["evaluations"] == calls["n"] > 2 and info["time_s"] > 0.0
