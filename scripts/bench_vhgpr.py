@@ -106,7 +106,8 @@ def sklearn_evaluations(X: np.ndarray, y: np.ndarray, fitted) -> int:
 
 def evaluation_columns(model, t_sk: float, sk_evals: int) -> str:
     """``init+runs`` evaluations of the VHGPR fit, scikit-learn's, and the time per evaluation of
-    each (VHGPR: median of its bound evaluations; scikit-learn: fit time / evaluations)."""
+    each (VHGPR: the median over its runs of each run's median bound evaluation, i.e. the run's own
+    median where there is one run; scikit-learn: fit time / evaluations)."""
     init = (model.info.get("homoscedastic_init") or {}).get("evaluations", 0)
     times = [r["eval_time_median_s"] for r in model.info["runs"] if r.get("eval_time_median_s")]
     ms_vh = 1e3 * statistics.median(times) if times else float("nan")
@@ -201,8 +202,8 @@ def main(argv: list[str] | None = None) -> int:
           " optimiser start, as scikit-learn's (restarts matched); evals vh = likelihood evaluations of"
           " the homoscedastic initialisation (its two starts) + bound evaluations of the VHGPR runs, sk ="
           " scikit-learn's (counted in a second fit that reaches the same kernel; -1: it did not); ms/ev ="
-          " milliseconds per evaluation (VHGPR: median over its bound evaluations; scikit-learn: fit time"
-          " / evaluations). A fit's time is about evaluations x time per evaluation.")
+          " milliseconds per evaluation (VHGPR: its runs' median bound evaluation, the median over runs;"
+          " scikit-learn: fit time / evaluations). A fit's time is about evaluations x time per evaluation.")
     if args.scale:
         scale_section([int(v) for v in args.scale.split(",")], args.no_sklearn)
     if args.stage_days:

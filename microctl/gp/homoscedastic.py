@@ -68,7 +68,8 @@ def fit_homoscedastic(X: np.ndarray, y: np.ndarray, spec: KernelSpec, rng: np.ra
         Box bounds of the linear part's log variances (``spec.bounds``' ``affine``).
     record : dict, optional
         Filled with what the fit cost: ``starts`` (optimiser starts), ``evaluations`` (likelihood
-        evaluations over all starts, and the last one for the leave-one-out residuals) and ``time_s`` (wall clock). The fit itself is the same.
+        evaluations over all starts, and the last one for the leave-one-out residuals) and
+        ``time_s`` (wall clock). The fit itself is the same.
 
     Returns
     -------
