@@ -304,8 +304,7 @@ class VHGPR:
         n, d_all = X.shape
         data = _standardise(X, y)
         Xs, ys = data["Xs"], data["ys"]
-        nf = self.noise_features
-        noise = self.noise
+        nf, noise = self.noise_features, self.noise
         Phi = As = bs = gate = None
         if nf is not None and nf.p > 0:
             As, bs = nf.standardised(data["x_mean"], data["x_scale"], data["y_scale"])
