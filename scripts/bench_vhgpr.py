@@ -22,8 +22,12 @@ with 10 new points. ``--stage-days D``: a simulated stage log (``configs/stage/s
 model (``microctl train`` defaults) exact on the first 2000 moves, sparse on 2000 and on all,
 its hold-out NLPD and the controller's per-call CPU time (median over 15 targets) on each.
 
+``--iter-sweep 20,40,...``: one-start fits of the motorcycle data and the 1-D synthetic at n = 125
+and 500 with each iteration cap (bound, hold-out NLPD, evaluations, time): what the default cap
+(:func:`microctl.gp.trainer.default_max_iter`) gives up.
+
 Usage: ``python scripts/bench_vhgpr.py [--repeats 3] [--sizes 125,500,2000] [--scale 1000,2000,5000,20000]
-[--stage-days 100]``.
+[--stage-days 100] [--iter-sweep 20,40,60,100,200,400]``.
 scikit-learn is needed by this script only (``pip install microctl[bench]``).
 """
 
@@ -133,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-sklearn", action="store_true", help="skip the scikit-learn baseline")
     ap.add_argument("--scale", default="", help="sizes of the 3-D scale section (e.g. 2000,5000,20000; empty: skip)")
     ap.add_argument("--stage-days", type=int, default=0, help="days of 200 moves of the stage section (0: skip)")
+    ap.add_argument("--iter-sweep", default="", help="iteration caps of the sweep section (e.g. 20,40,60,100,200,400;"
+                    " empty: skip)")
     args = ap.parse_args(argv)
 
     import scipy
@@ -204,12 +210,45 @@ def main(argv: list[str] | None = None) -> int:
           " scikit-learn's (counted in a second fit that reaches the same kernel; -1: it did not); ms/ev ="
           " milliseconds per evaluation (VHGPR: its runs' median bound evaluation, the median over runs;"
           " scikit-learn: fit time / evaluations). A fit's time is about evaluations x time per evaluation.")
+    if args.iter_sweep:
+        sweep_section([int(v) for v in args.iter_sweep.split(",")], data, (125, 500))
     if args.scale:
         scale_section([int(v) for v in args.scale.split(",")], args.no_sklearn)
     if args.stage_days:
         stage_section(args.stage_days)
     print(f"load average at the end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     return 0
+
+
+def iteration_sweep(X: np.ndarray, y: np.ndarray, Xte: np.ndarray, yte: np.ndarray, caps: list[int]) -> list[dict]:
+    """One-start fits (``n_restarts=1, g_start="f"``) with each iteration cap: the bound, the
+    hold-out NLPD, the evaluations and the time. The runs share their start, so a larger cap
+    continues the same L-BFGS-B path and the best bound found can only grow."""
+    rows = []
+    for cap in caps:
+        t, model = timed(lambda: VHGPR(n_restarts=1, g_start="f", max_iter=cap).fit(X, y), 1)
+        p = model.predict(Xte)
+        rows.append({"cap": cap, "iterations": model.info["iterations"], "evaluations": model.info["evaluations"],
+                     "bound": model.bound, "nlpd": gauss_nlpd(yte, p.y_mean, p.y_var), "time_s": t})
+    return rows
+
+
+def sweep_section(caps: list[int], mcycle: np.ndarray, sizes: tuple[int, ...]) -> None:
+    """How the bound and the hold-out NLPD move with the iteration cap (mcycle, and the 1-D synthetic)."""
+    Xt, yt, _, _ = planted(2000, seed=1000)
+    sets = [("mcycle", mcycle[:, :1], mcycle[:, 1], mcycle[:, :1], mcycle[:, 1])]
+    sets += [("synthetic", *planted(n, seed=n)[:2], Xt, yt) for n in sizes]
+    print()
+    print("iteration sweep: one start (n_restarts=1, g_start=f), max_iter = cap; one BLAS thread")
+    header = f"{'data':10s} {'n':>5s} {'cap':>5s} {'iters':>6s} {'evals':>6s} {'bound':>10s} {'NLPD':>8s} {'fit s':>7s}"
+    print(header)
+    print("-" * len(header))
+    for name, X, y, Xte, yte in sets:
+        for r in iteration_sweep(X, y, Xte, yte, caps):
+            print(f"{name:10s} {X.shape[0]:5d} {r['cap']:5d} {r['iterations']:6d} {r['evaluations']:6d} "
+                  f"{r['bound']:10.4f} {r['nlpd']:8.4f} {r['time_s']:7.2f}", flush=True)
+    print("bound: the MV bound of the fit (nats); NLPD as in the first table. The default cap is 100 up to"
+          " n = 200, then fewer (microctl.gp.trainer.default_max_iter).")
 
 
 def scale_section(sizes: list[int], no_sklearn: bool) -> None:

@@ -70,8 +70,8 @@ BENCH_RIGS_HELD_OUT_ARGS = ("--family", "all", "--rigs", "12", "--seed", "100", 
 #: Captured-output benchmarks: section -> (script, arguments).
 CAPTURED = {
     "bench_solve": ("scripts/bench_solve.py", ("--sizes", "125,500,2000")),
-    "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000", "--scale", "1000,2000,5000,20000",
-                                               "--stage-days", "100")),
+    "bench_vhgpr": ("scripts/bench_vhgpr.py", ("--sizes", "125,500,2000", "--iter-sweep", "20,40,60,100,200,400",
+                                               "--scale", "1000,2000,5000,20000", "--stage-days", "100")),
     "diagnosis_confusion": ("scripts/diagnosis_confusion.py", ()),
     "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
     "bench_learn": ("scripts/bench_learn.py", ("--rigs", "2", "--moves", "1000", "--refit-every", "250")),

@@ -53,3 +53,17 @@ def test_evaluation_columns_read_the_fit_record() -> None:
     assert float(cols[2]) == pytest.approx(1e3 * model.info["runs"][0]["eval_time_median_s"], abs=0.006)
     assert float(cols[3]) == pytest.approx(2.0)
     assert bench.evaluation_columns(model, t_sk=0.02, sk_evals=-1).split()[3] == "nan"
+
+
+def test_iteration_sweep_continues_one_path() -> None:
+    """Larger caps continue the same L-BFGS-B path from the same start: no more iterations than the
+    cap, and the bound found never falls as the cap grows (a sweep whose rows were unrelated fits
+    could not be read as "what the cap gives up")."""
+    X, y = _data(50)
+    rows = bench.iteration_sweep(X, y, X, y, [2, 5, 10, 20])
+    assert [r["cap"] for r in rows] == [2, 5, 10, 20]
+    for r in rows:
+        assert 1 <= r["iterations"] <= r["cap"] and np.isfinite(r["nlpd"]) and r["time_s"] > 0.0
+    bounds = [r["bound"] for r in rows]
+    assert all(b1 >= b0 for b0, b1 in zip(bounds, bounds[1:]))
+    assert bounds[-1] > bounds[0]
