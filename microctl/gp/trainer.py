@@ -40,11 +40,10 @@ RESIDUAL_RUN_HANDICAP = 1.0
 def default_max_iter(n: int) -> int:
     """Iterations per run when ``max_iter`` is None: 100 up to n = 200, then 100 (200/n)^0.6, at least 25.
 
-    Each iteration costs O(n^3), and with more points fewer iterations are needed: on the
-    synthetic benchmark (scripts/bench_vhgpr.py) the hold-out NLPD changes by < 1e-3 nats
-    after ~40 iterations at n = 500 and is within 0.005 nats of the oracle after 25 at
-    n = 2000, against ~100-150 iterations for the 133-point motorcycle data.  This gives
-    58 at n = 500, 38 at n = 1000 and 25 at n = 2000.
+    Each iteration costs O(n^3), and with more points fewer iterations are needed: how the
+    bound and the hold-out NLPD move with the cap is measured by ``python scripts/bench_vhgpr.py
+    --iter-sweep 20,40,60,100,200,400`` (docs/generated/bench_vhgpr.md, "iteration sweep").
+    The formula gives 58 at n = 500, 38 at n = 1000 and 25 at n = 2000.
     """
     return int(max(25, min(100, round(100 * (200 / n) ** 0.6))))
 

@@ -1,10 +1,11 @@
 """One switch for the BLAS thread pool during microctl's numerical work.
 
-Measured on the 2-core machines this package is developed and tested on: with another
-process on the other core, a multi-threaded OpenBLAS made the small products of the
-controller's seeding 80× slower (150×8 @ 8×2000: 15.8 ms vs 0.2 ms), a 250×250 Cholesky
-in the diagnosis 10× slower (9 ms vs 0.9 ms), and one n = 2000 VHGPR bound evaluation
-5-10× slower (20-50 s vs 4-5 s): the threads spin waiting for each other. The work here is
+On the 2-core machines this package is developed and tested on, with another process on
+the other core, a multi-threaded OpenBLAS made the small products of the controller's seeding
+(150×8 @ 8×2000), a 250×250 Cholesky in the diagnosis and an n = 2000 VHGPR bound evaluation
+many times slower than one thread (``python -m timeit`` of each under
+``OPENBLAS_NUM_THREADS=2`` and ``=1`` while another process is busy shows it): the threads
+spin waiting for each other. The work here is
 either small matrices or already dominated by one O(n³) factorisation, so one thread is
 both faster and predictable. :func:`single_thread_blas` limits the BLAS for the duration
 of a ``with`` block and restores it afterwards (threadpoolctl).
@@ -42,6 +43,6 @@ class _OneThread(AbstractContextManager):
 
 
 def single_thread_blas() -> AbstractContextManager:
-    """Context manager: the BLAS runs on one thread inside the block (entering costs ~12 µs; a
-    block opened inside another costs nothing: the outermost one restores the BLAS)."""
+    """Context manager: the BLAS runs on one thread inside the block (entering is cheap next to
+    the work it wraps; a block opened inside another costs nothing: the outermost one restores the BLAS)."""
     return _OneThread()
