@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections import OrderedDict
 from dataclasses import replace
 from typing import Any
 
@@ -172,6 +173,13 @@ def subset_rows(rng: np.random.Generator, n: int, size: int) -> np.ndarray:
     return np.sort(rng.choice(n, size=size, replace=False)) if n > size else np.arange(n)
 
 
+#: The last few k-means results, keyed by (digest of the sample, M, seed): the residual model's
+#: fits of one data set (microctl.models.training: the selected sources, a refit without the
+#: pruned ones, the mean shift) draw the same sample and seed, and k-means is deterministic.
+_KMEANS_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_KMEANS_CACHE_SIZE = 4
+
+
 def _inducing_points(Xs: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
     """M k-means centres of the rows of Xs (the distinct rows when there are at most M), shape (M', d)."""
     uniq = np.unique(Xs, axis=0)
@@ -179,8 +187,16 @@ def _inducing_points(Xs: np.ndarray, M: int, rng: np.random.Generator) -> np.nda
         return uniq
     sample = Xs if Xs.shape[0] <= 50 * M else Xs[rng.choice(Xs.shape[0], 50 * M, replace=False)]
     seed = int(rng.integers(2**31 - 1))
+    sample = np.ascontiguousarray(sample, dtype=float)
+    key = (hashlib.sha256(sample.tobytes()).hexdigest(), sample.shape, M, seed)
+    if key in _KMEANS_CACHE:
+        _KMEANS_CACHE.move_to_end(key)
+        return _KMEANS_CACHE[key].copy()
     centres, labels = kmeans2(sample, M, minit="++", seed=seed, iter=20)
     keep = np.bincount(labels, minlength=M) > 0  # empty clusters keep their initial centre: drop them
+    _KMEANS_CACHE[key] = centres[keep].copy()
+    while len(_KMEANS_CACHE) > _KMEANS_CACHE_SIZE:
+        _KMEANS_CACHE.popitem(last=False)
     return centres[keep]
 
 

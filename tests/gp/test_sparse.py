@@ -213,3 +213,27 @@ def test_bad_settings_and_inputs_are_refused(small):
         update(exact, np.array([[np.nan, 0.0]]), np.zeros(1))
     with pytest.raises(ConfigError, match="hyper must be a VHGPR trainer, got str"):
         SparseVHGPR(hyper="exact")
+
+
+def test_kmeans_of_the_same_sample_is_computed_once_and_gives_the_same_points(monkeypatch):
+    """The residual model fits one data set up to three times (microctl.models.training); the
+    k-means inducing points of a repeated sample and seed come from the cache: one kmeans2 call,
+    and the points equal bit for bit those of a fresh computation (cache emptied)."""
+    import microctl.gp.sparse as sp
+
+    rng0 = np.random.default_rng(3)
+    Xs = rng0.standard_normal((600, 3))  # 600 > 50 M: a sample is drawn, as at n = 20 000 with M = 256
+    calls = []
+    real = sp.kmeans2
+    monkeypatch.setattr(sp, "kmeans2", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(sp, "_KMEANS_CACHE", type(sp._KMEANS_CACHE)())
+    first = sp._inducing_points(Xs, 10, np.random.default_rng(0))
+    again = sp._inducing_points(Xs, 10, np.random.default_rng(0))
+    assert len(calls) == 1 and np.array_equal(first, again)
+    again[0, 0] += 1.0  # a caller's copy: the cache keeps its own
+    assert np.array_equal(sp._inducing_points(Xs, 10, np.random.default_rng(0)), first) and len(calls) == 1
+    sp._KMEANS_CACHE.clear()
+    fresh = sp._inducing_points(Xs, 10, np.random.default_rng(0))
+    assert len(calls) == 2 and np.array_equal(first, fresh)
+    other = sp._inducing_points(Xs, 10, np.random.default_rng(1))  # another seed: computed
+    assert len(calls) == 3 and not np.array_equal(first, other)
