@@ -211,7 +211,7 @@ def bench_size(afm, n, args):
         return time.process_time() - t1, x, succ, nit, None
 
     # method after method, each over every target: interleaved, the dense grid's 10 MB
-    # temporaries made the next method's solve ~0.5 ms slower (the allocator returns them to
+    # temporaries made the next method's solve measurably slower (the allocator returns them to
     # the system and the next arrays fault their pages in again)
     for i, m in enumerate(methods):
         for k, (target, s, u0) in enumerate(zip(targets, states, u0s)):

@@ -24,7 +24,7 @@ Sections (``--only`` picks some; default: all, in this order):
     of scripts/rig_families.py at 125 and 200 training moves, with the default controller and
     with the previous release's least-motion rule; ``docs/generated/bench_rigs.md``), then the held-out rigs
     ``--seed 100`` with the same two methods (:data:`BENCH_RIGS_HELD_OUT_ARGS`).
-    The longest (about an hour on a loaded 2-core machine); add ``physical,noise_only`` to
+    The longest (the page records its wall time); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side, ``eq4`` for the
     controller without the least-motion rule.
 ``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``

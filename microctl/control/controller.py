@@ -110,7 +110,7 @@ class EAFMController(BaseController):
         # A per-move objective is a monotone function of r (eq. 4: 1 - exp(-r)): the same argmin
         # is found by minimising r itself, which does not saturate where r is many µm² (there
         # 1 - exp(-r) is 1 to machine precision at every pose, its gradient ~exp(-r), and the
-        # solver cannot tell a pose 40x noisier from the quietest one: the paper-scale rig)
+        # solver cannot tell a pose many times noisier from the quietest one: the paper-scale rig)
         self._per_move = isinstance(objective, PerMoveObjective)
         self.surface = EAFMSurface(eafm, self.settings, self.name)
         self.rset = self.surface.rset

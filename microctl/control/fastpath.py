@@ -89,8 +89,9 @@ class FastSQP:
     def _bind_buffer(self) -> _Bound | None:
         """The packed function bound to fixed NumPy arrays (``casadi.Function.buffer``): an
         evaluation then copies three small inputs in and one vector out, without converting
-        them to and from DM on every call (~40 us of the ~140 us of a Table I call, the same
-        numbers to the last bit). None where this CasADi has no buffers (the plain call). The
+        them to and from DM on every call (a sizeable part of a Table I call, which
+        ``python scripts/bench_solve.py`` times; the same numbers to the last bit). None where
+        this CasADi has no buffers (the plain call). The
         arrays are this instance's: like the controller that owns it, one FastSQP serves one
         thread."""
         try:

@@ -2,8 +2,9 @@
 
 Used by the bound (:mod:`microctl.gp.bound`) and the homoscedastic initialisation
 (:mod:`microctl.gp.homoscedastic`); ``notes/vhgpr.md`` [N stable forms]. LAPACK comes from
-SciPy, imported on first use: importing ``scipy.linalg`` costs ~0.16 s of CPU, more than
-NumPy and CasADi together, and a one-shot ``microctl solve`` (prediction only) never needs it
+SciPy, imported on first use: importing ``scipy.linalg`` costs more CPU than NumPy and CasADi
+together (``python -X importtime -c 'import scipy.linalg'``), and a one-shot ``microctl solve``
+(prediction only) never needs it
 (:func:`tril_inverse` is NumPy only).
 """
 

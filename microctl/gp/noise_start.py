@@ -8,7 +8,7 @@ after mu follows the data. Once the signal variance is at its lower bound the gr
 Lambda vanishes (mu - mu0 = K_g (Lambda - I/2) 1) and the run ends with a flat g, whatever the
 noise does. Measured on the bench rigs (scripts/bench_rigs.py): every fitted residual model had
 g's signal variance at its bound, including the paper's ``hgp`` model on rigs where a noise
-model with the right features gains 90 nats of bound.
+model with the right features gains many nats of bound.
 
 This start puts g where the residuals say the noise is (the idea of Kersting et al. 2007,
 "most likely heteroscedastic GP", used here only as a start of the variational fit):
@@ -24,8 +24,8 @@ This start puts g where the residuals say the noise is (the idea of Kersting et 
    ``Lambda = 1/2 + w``, ``w = (K_g + s^2 I)^-1 (z - m)``. Lambda must be positive: where
    some ``1/2 + w_i`` falls below 0.05 the whole w is scaled down until it does not, so mu
    keeps the posterior mean's shape at a smaller amplitude (clipping single entries instead
-   changes the shape: on the tilt of tests/gp/test_noise_start.py it turned a correlation of
-   0.92 with the planted log variance into -0.53).
+   changes the shape: on the tilt of tests/gp/test_noise_start.py it turned a strong positive
+   correlation with the planted log variance into a negative one).
 
 The optimiser then starts with g already following the data, and the bound decides.
 """

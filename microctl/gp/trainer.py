@@ -145,9 +145,9 @@ class VHGPR:
         f's squared-exponential (nonlinear) part. ``"auto"`` (with a linear trend): fit f
         with and without it and keep it only if it raises the MV bound by more than its
         d + 1 hyperparameters cost, ``(d + 1)/2 log n`` (the BIC penalty): on data whose
-        mean the trend explains, a free SE part with d lengthscales fits the noise (measured
-        on simulated rigs: 0.5-5.5 nats of bound for 2-3 times the error at the workspace's
-        faces), while a real nonlinear effect (backlash, contact loss) pays hundreds of nats.
+        mean the trend explains, a free SE part with d lengthscales fits the noise (on
+        simulated rigs: a few nats of bound for a larger error at the workspace's faces),
+        while a real nonlinear effect (backlash, contact loss) pays far more.
         ``"off"`` needs a linear trend.
     propagate_noise_parameter_uncertainty : bool
         Add the Laplace variance of g's parametric prior mean (``noise_prior`` eq. 2) to g's

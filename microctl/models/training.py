@@ -105,8 +105,8 @@ def residual_dataset(log: Any, afm: AnalyticForwardModel) -> ResidualData:
     return ResidualData(X=np.hstack([s, u]), y=y, x_names=names, direction=log_directions(s[:, 1:], afm.q_of(u)))
 
 
-#: Most rows the exact VHGPR is trained on: its cost grows as n³ (3000 rows took over 4 minutes
-#: on a loaded 2-core machine, 200 000 do not fit in memory); ``gp: exact`` refuses a larger log
+#: Most rows the exact VHGPR is trained on: its cost grows as n³ (``python scripts/bench_vhgpr.py --scale``
+#: times it by n; 200 000 rows do not fit in memory); ``gp: exact`` refuses a larger log
 #: before any work with the advice to subsample it.
 MAX_TRAIN_ROWS = 2000
 #: Most rows the sparse model is trained on (its n x M matrices: ~3 GB at M = 256).

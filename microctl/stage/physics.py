@@ -38,7 +38,8 @@ driver accuracy are noise (see :func:`tool_sensitivity` and :func:`reading_varia
 
 With the default :class:`~microctl.stage.geometry.Physics` (k_c = 20 N/µm, preload 100 N,
 flexure (0.01, 5, 5)) each ball is compressed ≈ 1.25 µm at rest and a healthy stage
-matches the rigid AFM to ≈ 0.01 µm. Every function accepts either a
+matches the rigid AFM within the gauge noise (docs/backends.md, "Physics", prints the
+difference). Every function accepts either a
 :class:`~microctl.stage.geometry.Stage` plus :class:`~microctl.stage.causes.Effects`, or a prebuilt
 :class:`ContactModel` (faster inside a fit loop).
 """
