@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from microctl.gp.homoscedastic import INIT_STARTS
 from microctl.gp.vhgpr import VHGPR
 
 #: the motorcycle benchmark data, shipped with the tests (tests/data/README.md)
@@ -206,7 +207,8 @@ def main(argv: list[str] | None = None) -> int:
           " points (mcycle: train = test); corr g = correlation of the learned mean log noise variance"
           " with the true one; iters = L-BFGS-B iterations over all runs; n_restarts=1,g_start=f: one"
           " optimiser start, as scikit-learn's (restarts matched); evals vh = likelihood evaluations of"
-          " the homoscedastic initialisation (its two starts) + bound evaluations of the VHGPR runs, sk ="
+          f" the homoscedastic initialisation (its {len(INIT_STARTS)} starts) + bound evaluations of the VHGPR"
+          " runs, sk ="
           " scikit-learn's (counted in a second fit that reaches the same kernel; -1: it did not); ms/ev ="
           " milliseconds per evaluation (VHGPR: its runs' median bound evaluation, the median over runs;"
           " scikit-learn: fit time / evaluations). A fit's time is about evaluations x time per evaluation.")

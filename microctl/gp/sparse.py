@@ -194,10 +194,10 @@ def _inducing_points(Xs: np.ndarray, M: int, rng: np.random.Generator) -> np.nda
         return _KMEANS_CACHE[key].copy()
     centres, labels = kmeans2(sample, M, minit="++", seed=seed, iter=20)
     keep = np.bincount(labels, minlength=M) > 0  # empty clusters keep their initial centre: drop them
-    _KMEANS_CACHE[key] = centres[keep].copy()
+    _KMEANS_CACHE[key] = points = centres[keep]  # a new array (boolean indexing); callers get copies
     while len(_KMEANS_CACHE) > _KMEANS_CACHE_SIZE:
         _KMEANS_CACHE.popitem(last=False)
-    return centres[keep]
+    return points.copy()
 
 
 class _Problem:
