@@ -1,0 +1,272 @@
+"""What limits the EAFM's absolute-movement accuracy on a simulated rig: scatter, moves or model?
+
+The absolute bar (docs/experiments.md, ``absolute_pe``) asks the EAFM's mean prediction to be
+nearer the simulator's true mean than the AFM's at >= 90 % of the experiment's points. When it
+is missed, three things may be at fault: the readings' scatter (the actuators' stick-slip on top
+of the gauge noise), the training moves (where they put the data), or the mean correction's model
+class (f: a linear trend plus an SE-ARD GP in x = [s; u], eq. 3). This script separates them by
+training the experiment's own residual model again, with the experiment's settings, on four data
+sets (and re-weighting one of them with the truth's noise), and scoring each mean prediction against the truth at the experiment's absolute points
+(each from the zero state, IV-C):
+
+``logged``
+    The run's training log as measured (the run's EAFM learned from it; the count can differ
+    from the run's by the trainer's seed and the run's per-trial states).
+``told_noise``
+    The ``logged`` fit's f (its hyperparameters) with the truth's noise variance of each
+    training reading in place of the learned ``exp(g)``: the best the weighting of the
+    readings can do, so a count here near ``logged``'s says the noise model is not the limit.
+``gauge``
+    The same moves; each reading replaced by the true mean plus the gauge's noise alone
+    (``gauge_noise_std_um``): the actuators' scatter removed.
+``exact``
+    The same moves; readings = true mean plus ``--exact-noise`` times the gauge's std (the
+    VHGPR needs some noise): what the moves and f's model class allow.
+``covering``
+    A fresh ``covering`` design (:mod:`microctl.measurement.design`) of as many moves as the
+    log, readings as in ``exact``: the same model class with moves spread over the workspace
+    instead of the refinement rounds' moves.
+
+Each reference is printed as: points nearer the truth than the AFM, the median and largest
+|error| (µm), and the share of points whose true mean lies within twice f's predicted std (95.4 %
+for a calibrated f: is the predicted bias uncertainty its error's size?). Beside them it prints
+the AFM's smallest errors at the points: a point where the AFM is right
+by chance to a few hundredths of a µm is one that no model learned from noisy readings can be
+expected to beat, whatever its accuracy elsewhere.
+
+Usage::
+
+    microctl experiment configs/experiments/paper_scale.yaml --out runs/paper_scale
+    python scripts/absolute_limits.py runs/paper_scale [more run folders ...]
+
+Only simulated stages (``backend.kind: simulated``) have a truth to score against.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+
+from microctl.backends.simulated import SimulatedStage
+from microctl.errors import ConfigError
+from microctl.experiments.config import parse_experiment_config
+from microctl.measurement.design import training_moves
+from microctl.measurement.log import read_log
+from microctl.models.afm import AnalyticForwardModel
+from microctl.models.eafm import EAFM
+from microctl.models.training import ResidualData, residual_dataset, train_residual_model
+from microctl.stage.config import load_yaml
+
+__all__ = ["REFERENCES", "nearer_than_afm", "truth_readings", "with_noise_variances", "run_references", "main"]
+
+#: The data sets the residual model is trained on (module docstring), in the order printed.
+REFERENCES = ("logged", "told_noise", "gauge", "exact", "covering")
+
+#: Default noise of the ``exact`` and ``covering`` readings, as a fraction of the gauge's std.
+EXACT_NOISE_FRACTION = 0.1
+
+
+def nearer_than_afm(pred_um: np.ndarray, truth_um: np.ndarray, afm_um: np.ndarray) -> dict:
+    """How a mean prediction compares with the AFM's against the truth, point by point.
+
+    Parameters
+    ----------
+    pred_um, truth_um, afm_um : ndarray, shape (n,)
+        The model's mean prediction, the true mean and the AFM's prediction at n points (µm).
+
+    Returns
+    -------
+    dict
+        ``nearer`` (points where |pred - truth| < |afm - truth|), ``points``, ``median_um`` and
+        ``max_um`` of |pred - truth|.
+    """
+    err = np.abs(np.asarray(pred_um, float) - np.asarray(truth_um, float))
+    err_afm = np.abs(np.asarray(afm_um, float) - np.asarray(truth_um, float))
+    return {"nearer": int(np.sum(err < err_afm)), "points": int(err.size),
+            "median_um": float(np.median(err)), "max_um": float(np.max(err))}
+
+
+def truth_readings(stage, s_prev: np.ndarray, moves: np.ndarray, noise_std_um: float,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Readings drawn from the truth: the true mean of each move from its state plus N(0, std²).
+
+    Parameters
+    ----------
+    stage : SimulatedStage
+        Gives ``true_mean(s, u)``.
+    s_prev : ndarray, shape (n, n_s)
+        The state before each move ([t_prev, q_prev]).
+    moves : ndarray, shape (n, n_p)
+    noise_std_um : float
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    mean = np.array([stage.true_mean(s, u) for s, u in zip(s_prev, moves)])
+    return mean + noise_std_um * rng.standard_normal(mean.size)
+
+
+def _run_config(path: Path):
+    """The experiment a run folder's ``config.yaml`` records (its seeds already offset)."""
+    raw = load_yaml(path)
+    if not isinstance(raw, dict) or not isinstance(raw.get("experiment"), dict):
+        raise ConfigError(f"{path}: no 'experiment' section (a config.yaml written by `microctl experiment`)")
+    section = {k: v for k, v in raw["experiment"].items() if k != "seed_offset"}
+    return parse_experiment_config(section, str(path), path.parent)
+
+
+def _covering_states(stage, afm: AnalyticForwardModel, moves: np.ndarray) -> np.ndarray:
+    """The states a run of ``moves`` from the zero state passes through, on the truth's mean."""
+    s = np.zeros(afm.n_s)
+    out = np.zeros((len(moves), afm.n_s))
+    for k, u in enumerate(moves):
+        out[k] = s
+        s = np.concatenate([[stage.true_mean(s, u)], afm.K @ u])
+    return out
+
+
+def with_noise_variances(model, var_um2: np.ndarray):
+    """``model`` with f's posterior recomputed for given noise variances of its training rows.
+
+    f's kernel, hyperparameters and training targets are kept; ``R = diag(var / y_scale²)``
+    replaces the VHGPR's ``diag(exp(mu - Sigma / 2))`` (:mod:`microctl.gp.bound`), so the mean
+    becomes ``k^T (K_f + R)^-1 ys``. Exact posterior form only.
+
+    Parameters
+    ----------
+    model : FittedVHGPR
+    var_um2 : ndarray, shape (n,)
+        Noise variance of each of the model's training rows (``model.X``'s order), µm².
+
+    Returns
+    -------
+    FittedVHGPR
+    """
+    if model.posterior_form != "exact":
+        raise ConfigError(f"the noise variances can be replaced only in an exact posterior, not a "
+                          f"{model.posterior_form} one")
+    K = model.f_kernel.matrix(model.X, model.X)
+    ys = model.f_chol @ (model.f_chol.T @ model.f_alpha)  # f_alpha = (K_f + R)^-1 ys
+    L = np.linalg.cholesky(K + np.diag(np.asarray(var_um2, float) / model.y_scale**2))
+    return dataclasses.replace(model, f_chol=L, f_alpha=sla.cho_solve((L, True), ys))
+
+
+def _true_variances(stage, afm, model) -> np.ndarray:
+    """The truth's noise variance at each of ``model``'s training rows (µm²)."""
+    X = model.X * model.x_scale + model.x_mean
+    return np.array([stage.true_var(x[:afm.n_s], x[afm.n_s:afm.n_s + afm.n_p]) for x in X])
+
+
+def _score(afm, model, U: np.ndarray, truth: np.ndarray) -> dict:
+    eafm = EAFM(afm, model)
+    zero = np.zeros(afm.n_s)
+    preds = [eafm.predict(zero, u) for u in U]
+    pred = np.array([float(p.t_mean[0]) for p in preds])
+    f_std = np.sqrt(np.maximum([float(p.f_var[0]) for p in preds], 0.0))
+    out = nearer_than_afm(pred, truth, np.asarray(afm.t_of(U), float))
+    # is f's own uncertainty the size of its error? (95.4 % for a calibrated f)
+    out["within_2_f_std"] = float(np.mean(np.abs(pred - truth) <= 2.0 * f_std))
+    out["selected"] = list((model.info.get("noise_selection") or {}).get("selected") or [])
+    return out
+
+
+def run_references(run_dir: Path, *, exact_fraction: float = EXACT_NOISE_FRACTION, seed: int = 0) -> dict:
+    """Train the run's residual model on each of :data:`REFERENCES` and score it (module docstring).
+
+    Parameters
+    ----------
+    run_dir : Path
+        A ``microctl experiment`` output folder (results.json, config.yaml, training_log.csv).
+    exact_fraction : float
+        Noise of the ``exact`` and ``covering`` readings, as a fraction of the gauge's std.
+    seed : int
+        Seed of the replacement readings' noise.
+
+    Returns
+    -------
+    dict
+        ``references`` (name -> :func:`nearer_than_afm`'s dict plus ``selected`` and
+        ``within_2_f_std``, the share of points whose true mean is within twice f's std),
+        ``afm_smallest_um`` (the AFM's four smallest errors at the points), ``rows``.
+    """
+    results = json.loads((run_dir / "results.json").read_text())
+    cfg = _run_config(run_dir / "config.yaml")
+    stage_cfg = cfg.stage_config
+    if stage_cfg.backend.kind != "simulated":
+        raise ConfigError(f"{run_dir / 'config.yaml'}: experiment.stage: backend.kind is "
+                          f"'{stage_cfg.backend.kind}'; only a simulated stage has a truth to score against")
+    afm = AnalyticForwardModel(stage_cfg.stage)
+    stage = SimulatedStage(stage_cfg, seed=cfg.seeds.training_stage)
+    gauge = float(stage_cfg.backend.simulated.gauge_noise_std_um)
+    ab = results["absolute"]
+    U = np.asarray(ab["u"], float)
+    truth = np.nanmean(np.asarray(ab["true_mean_um"], float), axis=0)  # the same every trial (zero state)
+    log = read_log(run_dir / "training_log.csv", stage_cfg.stage)
+    data = residual_dataset(log, afm)
+    t_afm = np.asarray(log.t, float).ravel() - data.y  # the AFM's reading of each logged move
+    settings = cfg.training.model_settings(seed=cfg.seeds.gp)
+    rng = np.random.default_rng(seed)
+    small = exact_fraction * gauge
+    s_prev, moves = data.X[:, :afm.n_s], data.X[:, afm.n_s:]
+    cov_moves = training_moves(afm, "covering", len(data.y), cfg.seeds.design)
+    cov_states = _covering_states(stage, afm, cov_moves)
+    cov_X = np.hstack([cov_states, cov_moves])
+    cov_y = truth_readings(stage, cov_states, cov_moves, small, rng) - np.asarray(afm.t_of(cov_moves), float).ravel()
+    sets = {
+        "logged": data,
+        "gauge": dataclasses.replace(data, y=truth_readings(stage, s_prev, moves, gauge, rng) - t_afm),
+        "exact": dataclasses.replace(data, y=truth_readings(stage, s_prev, moves, small, rng) - t_afm),
+        "covering": ResidualData(X=cov_X, y=cov_y, x_names=data.x_names),
+    }
+    models = {name: train_residual_model(d, afm, settings) for name, d in sets.items()}
+    models["told_noise"] = with_noise_variances(models["logged"], _true_variances(stage, afm, models["logged"]))
+    refs = {name: _score(afm, models[name], U, truth) for name in REFERENCES}
+    smallest = np.sort(np.abs(np.asarray(afm.t_of(U), float) - truth))[:4]
+    return {"references": refs, "afm_smallest_um": smallest.tolist(), "rows": int(len(data.y))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="microctl experiment output folders")
+    ap.add_argument("--exact-noise", type=float, default=EXACT_NOISE_FRACTION,
+                    help="noise of the exact and covering readings, as a fraction of the gauge's std "
+                         f"(default {EXACT_NOISE_FRACTION})")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the replacement readings' noise")
+    ap.add_argument("--json", type=Path, help="also write the results here")
+    args = ap.parse_args(argv)
+    if not args.exact_noise > 0:
+        ap.error(f"--exact-noise must be > 0 (the VHGPR needs some noise), got {args.exact_noise}")
+    for run in args.runs:
+        if not (run / "results.json").is_file():
+            ap.error(f"{run}: no results.json (a folder written by `microctl experiment --out`)")
+    print("| run | rows | " + " | ".join(f"{r}: nearer / median / max (µm) / within 2 f std" for r in REFERENCES)
+          + " | AFM's smallest errors (µm) |")
+    print("|---|---|" + "---|" * len(REFERENCES) + "---|")
+    out = {}
+    for run in args.runs:
+        t0 = time.perf_counter()
+        res = run_references(run, exact_fraction=args.exact_noise, seed=args.seed)
+        out[str(run)] = res
+        cells = [f"{v['nearer']}/{v['points']} / {v['median_um']:.3f} / {v['max_um']:.2f} / {v['within_2_f_std']:.0%}"
+                 for v in (res["references"][r] for r in REFERENCES)]
+        print(f"| {run} | {res['rows']} | " + " | ".join(cells) + " | "
+              + ", ".join(f"{e:.3f}" for e in res["afm_smallest_um"]) + " |", flush=True)
+        print(f"  ({time.perf_counter() - t0:.0f} s; selected: "
+              + "; ".join(f"{r} {res['references'][r]['selected']}" for r in REFERENCES) + ")",
+              file=sys.stderr, flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
