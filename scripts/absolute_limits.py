@@ -2,20 +2,22 @@
 
 The absolute bar (docs/experiments.md, ``absolute_pe``) asks the EAFM's mean prediction to be
 nearer the simulator's true mean than the AFM's at >= 90 % of the experiment's points. When it
-is missed, three things may be at fault: the readings' scatter (the actuators' stick-slip on top
-of the gauge noise), the training moves (where they put the data), or the mean correction's model
-class (f: a linear trend plus an SE-ARD GP in x = [s; u], eq. 3). This script separates them by
-training the experiment's own residual model again, with the experiment's settings, on four data
-sets (and re-weighting one of them with the truth's noise), and scoring each mean prediction against the truth at the experiment's absolute points
-(each from the zero state, IV-C):
+is missed, four things may be at fault: the noise model's weighting of the readings, their
+scatter (the actuators' stick-slip on top of the gauge noise), the training moves (where they
+put the data), or the mean correction's model class (f: a linear trend plus an SE-ARD GP in
+x = [s; u], eq. 3). This script separates them by training the experiment's own residual model
+again, with the experiment's settings, on four data sets (and re-weighting one of them with the
+truth's noise), and scoring each mean prediction against the truth at the experiment's absolute
+points (each from the zero state, IV-C):
 
 ``logged``
-    The run's training log as measured (the run's EAFM learned from it; the count can differ
-    from the run's by the trainer's seed and the run's per-trial states).
+    The run's training log as measured, fitted with the seed of the run's last fit: the run's
+    EAFM again (its count is the run's ``absolute_pe`` count unless the refit differs).
 ``told_noise``
     The ``logged`` fit's f (its hyperparameters) with the truth's noise variance of each
-    training reading in place of the learned ``exp(g)``: the best the weighting of the
-    readings can do, so a count here near ``logged``'s says the noise model is not the limit.
+    training reading in place of the learned ``exp(g)``: the weighting a perfect noise model
+    would give, with the fit's own kernel, so a count here near ``logged``'s says the noise model
+    is not the limit.
 ``gauge``
     The same moves; each reading replaced by the true mean plus the gauge's noise alone
     (``gauge_noise_std_um``): the actuators' scatter removed.
@@ -213,7 +215,8 @@ def run_references(run_dir: Path, *, exact_fraction: float = EXACT_NOISE_FRACTIO
     log = read_log(run_dir / "training_log.csv", stage_cfg.stage)
     data = residual_dataset(log, afm)
     t_afm = np.asarray(log.t, float).ravel() - data.y  # the AFM's reading of each logged move
-    settings = cfg.training.model_settings(seed=cfg.seeds.gp)
+    # the seed of the run's last fit (microctl.experiments.runner: the fit of round r uses gp + r)
+    settings = cfg.training.model_settings(seed=cfg.seeds.gp + cfg.training.refine_rounds)
     rng = np.random.default_rng(seed)
     small = exact_fraction * gauge
     s_prev, moves = data.X[:, :afm.n_s], data.X[:, afm.n_s:]
