@@ -28,6 +28,19 @@ def test_nearer_than_afm_counts_strictly_nearer_points_and_the_error_sizes():
     assert out["max_um"] == pytest.approx(0.3)
 
 
+def test_nearer_than_afm_averages_each_points_error_over_the_trials_first():
+    """Two trials: at point 0 the model's errors 0.5 and 0.0 (mean 0.25) against the AFM's 0.3
+    and 0.1 (mean 0.2), though the model is nearer in one trial; at point 1, 0.1 and 0.1
+    against 0.5 and 0.3."""
+    truth = np.array([[1.0, 2.0], [1.2, 2.2]])
+    afm = np.array([1.3, 2.5])                 # errors: point 0 0.3, 0.1; point 1 0.5, 0.3
+    pred = np.array([[1.5, 2.1], [1.2, 2.1]])  # errors: point 0 0.5, 0.0; point 1 0.1, 0.1
+    out = _lim().nearer_than_afm(pred, truth, afm)
+    assert out["nearer"] == 1 and out["points"] == 2
+    assert out["median_um"] == pytest.approx(0.175)
+    assert out["max_um"] == pytest.approx(0.25)
+
+
 class _Stage:
     """The next reading's true mean is 2 u_0 - u_1 + t_prev / 10."""
 
