@@ -37,10 +37,11 @@ Every reference but ``zero_state`` is read, like the run's EAFM, from the state 
 recorded before the point (absolute_log.csv), and its error is the mean over the trials of
 |prediction - true mean|, as the experiment's report computes it. Each reference is printed as:
 points nearer the truth than the AFM, the median and largest |error| (µm), and the share of
-points whose true mean lies within twice f's predicted std (95.4 % for a calibrated f: is the
-predicted bias uncertainty its error's size?). Beside them it prints the AFM's smallest errors
-at the points: a point where the AFM is right by chance to a few hundredths of a µm is one that
-no model learned from noisy readings can be expected to beat, whatever its accuracy elsewhere.
+moves (every trial's) whose true mean lies within twice f's predicted std (95.4 % for a
+calibrated f: is the predicted bias uncertainty its error's size?). Beside them it prints the
+AFM's smallest errors at the points: a point where the AFM is right by chance to a few
+hundredths of a µm is one that no model learned from noisy readings can be expected to beat,
+whatever its accuracy elsewhere.
 
 Usage::
 
@@ -223,7 +224,8 @@ def run_references(run_dir: Path, *, exact_fraction: float = EXACT_NOISE_FRACTIO
     -------
     dict
         ``references`` (name -> :func:`nearer_than_afm`'s dict plus ``selected`` and
-        ``within_2_f_std``, the share of points whose true mean is within twice f's std),
+        ``within_2_f_std``, the share of the moves (every trial's) whose true mean is within twice
+        f's std),
         ``afm_smallest_um`` (the AFM's four smallest errors at the points), ``rows``.
     """
     results = json.loads((run_dir / "results.json").read_text())
