@@ -66,6 +66,7 @@ import scipy.linalg as sla
 from microctl.backends.simulated import SimulatedStage
 from microctl.errors import ConfigError
 from microctl.experiments.config import parse_experiment_config
+from microctl.experiments.report import mean_errors_vs_truth
 from microctl.measurement.design import training_moves
 from microctl.measurement.log import read_log
 from microctl.models.afm import AnalyticForwardModel
@@ -73,7 +74,7 @@ from microctl.models.eafm import EAFM
 from microctl.models.training import ResidualData, residual_dataset, train_residual_model
 from microctl.stage.config import load_yaml
 
-__all__ = ["REFERENCES", "nearer_than_afm", "truth_readings", "with_noise_variances", "run_references", "main"]
+__all__ = ["REFERENCES", "nearer_than_afm", "true_means", "truth_readings", "with_noise_variances", "run_references", "main"]
 
 #: The data sets the residual model is trained on (module docstring), in the order printed.
 REFERENCES = ("logged", "zero_state", "told_noise", "gauge", "exact", "covering")
@@ -85,8 +86,8 @@ EXACT_NOISE_FRACTION = 0.1
 def nearer_than_afm(pred_um: np.ndarray, truth_um: np.ndarray, afm_um: np.ndarray) -> dict:
     """How a mean prediction compares with the AFM's against the truth, point by point.
 
-    As the experiment's report does (``absolute.mean_error_vs_truth_um``): each error is the mean
-    over the trials of |prediction - true mean|.
+    As the experiment's report does (:func:`microctl.experiments.report.mean_errors_vs_truth`):
+    each error is the mean over the trials of |prediction - true mean|.
 
     Parameters
     ----------
@@ -101,16 +102,13 @@ def nearer_than_afm(pred_um: np.ndarray, truth_um: np.ndarray, afm_um: np.ndarra
         ``nearer`` (points where the model's error is below the AFM's), ``points``, ``median_um``
         and ``max_um`` of the model's error.
     """
-    truth = np.atleast_2d(np.asarray(truth_um, float))
-    err = np.abs(np.atleast_2d(np.asarray(pred_um, float)) - truth).mean(axis=0)
-    err_afm = np.abs(np.asarray(afm_um, float)[None, :] - truth).mean(axis=0)
+    err_afm, err = mean_errors_vs_truth(np.atleast_2d(truth_um), afm_um, np.atleast_2d(pred_um))
     return {"nearer": int(np.sum(err < err_afm)), "points": int(err.size),
             "median_um": float(np.median(err)), "max_um": float(np.max(err))}
 
 
-def truth_readings(stage, s_prev: np.ndarray, moves: np.ndarray, noise_std_um: float,
-                   rng: np.random.Generator) -> np.ndarray:
-    """Readings drawn from the truth: the true mean of each move from its state plus N(0, std²).
+def true_means(stage, s_prev: np.ndarray, moves: np.ndarray) -> np.ndarray:
+    """The truth's mean reading of each move from its state (readings are drawn around it).
 
     Parameters
     ----------
@@ -119,14 +117,17 @@ def truth_readings(stage, s_prev: np.ndarray, moves: np.ndarray, noise_std_um: f
     s_prev : ndarray, shape (n, n_s)
         The state before each move ([t_prev, q_prev]).
     moves : ndarray, shape (n, n_p)
-    noise_std_um : float
-    rng : numpy.random.Generator
 
     Returns
     -------
     ndarray, shape (n,)
     """
-    mean = np.array([stage.true_mean(s, u) for s, u in zip(s_prev, moves)])
+    return np.array([stage.true_mean(s, u) for s, u in zip(s_prev, moves)])
+
+
+def truth_readings(mean_um: np.ndarray, noise_std_um: float, rng: np.random.Generator) -> np.ndarray:
+    """Readings drawn around the truth's means (:func:`true_means`): mean + N(0, std²), shape (n,)."""
+    mean = np.asarray(mean_um, dtype=float)
     return mean + noise_std_um * rng.standard_normal(mean.size)
 
 
@@ -139,14 +140,16 @@ def _run_config(path: Path):
     return parse_experiment_config(section, str(path), path.parent)
 
 
-def _covering_states(stage, afm: AnalyticForwardModel, moves: np.ndarray) -> np.ndarray:
-    """The states a run of ``moves`` from the zero state passes through, on the truth's mean."""
+def _covering_run(stage, afm: AnalyticForwardModel, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The states a run of ``moves`` from the zero state passes through on the truth's mean, and
+    that mean reading of each move: shapes (n, n_s) and (n,)."""
     s = np.zeros(afm.n_s)
-    out = np.zeros((len(moves), afm.n_s))
+    states, means = np.zeros((len(moves), afm.n_s)), np.zeros(len(moves))
     for k, u in enumerate(moves):
-        out[k] = s
-        s = np.concatenate([[stage.true_mean(s, u)], afm.K @ u])
-    return out
+        states[k] = s
+        means[k] = stage.true_mean(s, u)
+        s = np.concatenate([[means[k]], afm.K @ u])
+    return states, means
 
 
 def with_noise_variances(model, var_um2: np.ndarray):
@@ -250,13 +253,14 @@ def run_references(run_dir: Path, *, exact_fraction: float = EXACT_NOISE_FRACTIO
     small = exact_fraction * gauge
     s_prev, moves = data.X[:, :afm.n_s], data.X[:, afm.n_s:]
     cov_moves = training_moves(afm, "covering", len(data.y), cfg.seeds.design)
-    cov_states = _covering_states(stage, afm, cov_moves)
+    cov_states, cov_mean = _covering_run(stage, afm, cov_moves)
     cov_X = np.hstack([cov_states, cov_moves])
-    cov_y = truth_readings(stage, cov_states, cov_moves, small, rng) - np.asarray(afm.t_of(cov_moves), float).ravel()
+    cov_y = truth_readings(cov_mean, small, rng) - np.asarray(afm.t_of(cov_moves), float).ravel()
+    mean = true_means(stage, s_prev, moves)  # once for both readings of the logged moves
     sets = {
         "logged": data,
-        "gauge": dataclasses.replace(data, y=truth_readings(stage, s_prev, moves, gauge, rng) - t_afm),
-        "exact": dataclasses.replace(data, y=truth_readings(stage, s_prev, moves, small, rng) - t_afm),
+        "gauge": dataclasses.replace(data, y=truth_readings(mean, gauge, rng) - t_afm),
+        "exact": dataclasses.replace(data, y=truth_readings(mean, small, rng) - t_afm),
         "covering": ResidualData(X=cov_X, y=cov_y, x_names=data.x_names),
     }
     models = {name: train_residual_model(d, afm, settings) for name, d in sets.items()}

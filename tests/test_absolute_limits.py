@@ -53,7 +53,8 @@ def test_truth_readings_are_the_true_mean_of_each_move_from_its_state_plus_the_s
     rng = np.random.default_rng(3)
     s_prev = rng.normal(size=(6, 5))
     moves = rng.normal(size=(6, 3))
-    got = _lim().truth_readings(_Stage(), s_prev, moves, 0.25, np.random.default_rng(11))
+    lim = _lim()
+    got = lim.truth_readings(lim.true_means(_Stage(), s_prev, moves), 0.25, np.random.default_rng(11))
     mean = 2.0 * moves[:, 0] - moves[:, 1] + s_prev[:, 0] / 10.0
     assert np.allclose(got, mean + 0.25 * np.random.default_rng(11).standard_normal(6), rtol=0, atol=1e-12)
 

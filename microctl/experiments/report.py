@@ -150,6 +150,28 @@ def incremental_stats(inc: dict) -> dict:
     }
 
 
+def mean_errors_vs_truth(true_mean_um: np.ndarray, afm_um: np.ndarray,
+                         model_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each absolute point's mean error against the simulator's truth, for the AFM and a model.
+
+    Parameters
+    ----------
+    true_mean_um, model_um : ndarray, shape (trials, points)
+        The true mean of each move and the model's mean prediction (µm).
+    afm_um : ndarray, shape (points,)
+        The AFM's prediction (the same every trial).
+
+    Returns
+    -------
+    err_afm, err_model : ndarray, shape (points,)
+        The mean over the trials of |true mean - prediction|; the ``absolute_pe`` bar counts the
+        points where ``err_model < err_afm``.
+    """
+    tm = np.asarray(true_mean_um, dtype=float)
+    return (np.abs(tm - np.asarray(afm_um, dtype=float)[None, :]).mean(axis=0),
+            np.abs(tm - np.asarray(model_um, dtype=float)).mean(axis=0))
+
+
 def absolute_stats(ab: dict) -> dict:
     """PE per point, the tests, and the 2σ coverage (see the module docstring)."""
     meas = ab["measured_um"]  # (trials, points)
@@ -177,8 +199,7 @@ def absolute_stats(ab: dict) -> dict:
     if np.any(np.isfinite(ab["true_mean_um"])):
         # noise-free accuracy of the two means (simulator truth): model error without the gauge/friction scatter
         tm = ab["true_mean_um"]
-        err_afm = np.abs(tm - ab["afm_um"][None, :]).mean(axis=0)
-        err_eafm = np.abs(tm - ab["eafm_mean_um"]).mean(axis=0)
+        err_afm, err_eafm = mean_errors_vs_truth(tm, ab["afm_um"], ab["eafm_mean_um"])
         # the PE a perfect model would have (the true mean's): how much of the measured PE is scatter
         pe_truth = np.abs(meas - tm).mean(axis=0)
         out["mean_error_vs_truth_um"] = {"afm": err_afm, "eafm": err_eafm,
