@@ -38,7 +38,9 @@ Methods (columns):
 - ``weighed``: the default with the unselected sources' model-averaged variance in eq. 4's
   objective (``weigh_alternatives``);
 - ``noise_only``: today's model with the previous objective (no f variance);
-- ``params``: the default with the noise parameters' uncertainty in the objective.
+- ``params``: the default with the noise parameters' uncertainty in the objective;
+- ``still``: the default trained on ``covering_still`` (every 20th move the previous command
+  again, which reads the noise floor; microctl.measurement.design).
 
 Bars (issue 10): with 200 moves, on >= 90 % of rigs, at every target, true std <= 1.25 x
 the oracle's and |true error| <= 0.1 µm; the readings' true RMS deviation from the prediction
@@ -132,6 +134,9 @@ METHODS = {
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    # the default trained on the covering design with every 20th move a still move (the previous
+    # command again: microctl.measurement.design, covering_still), which reads the noise floor
+    "still": Method("still", "covering_still", ResidualModelSettings(), ControllerSettings()),
     # the default without the least-motion rule (microctl.control.credible): eq. 4's optimum always,
     # the default before issue 18's least-motion change
     "eq4": Method("eq4", "covering", ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),

@@ -21,6 +21,16 @@ still, another at its range limit), so the mean correction must be learned there
       the full range whatever the pose;
     - *face*: one actuator put at its lower or upper limit (a facet of the polytope), with
       another held still or put at a limit too in a share of them (edges).
+``covering_still``
+    ``covering`` with every :data:`STILL_EVERY`-th move replaced by a *still* move: the
+    previous command sent again, so every actuator's step and the platform's motion are zero.
+    The noise floor c_0 (the gauge and the drivers, ``noise_prior`` eq. 1) is identified by the
+    moves where no selected noise source is active; where every source grows with the step (a
+    hinge that slips with the platform's rotation, stick-slip on several actuators), the covering
+    design has few such moves, the floor is confounded with the sources and can be fitted near
+    zero, and the repeatability predicted at a quiet pose is then far below the stage's. A still
+    move reads the floor plus the pose-dependent sources alone. The other moves are the
+    covering design's (the one a still move replaces is left out).
 ``space_filling``
     The paper's 125 moves evenly covering the workspace: Sobol points kept inside the
     polytope, in a seeded order in which consecutive moves are not close (every actuator
@@ -40,11 +50,11 @@ import numpy as np
 from microctl.errors import ConfigError, SolveError
 from microctl.models.afm import AnalyticForwardModel
 
-__all__ = ["DESIGNS", "DEFAULT_DESIGN", "training_moves", "covering_moves", "space_filling_moves",
+__all__ = ["DESIGNS", "DEFAULT_DESIGN", "STILL_EVERY", "training_moves", "covering_moves", "space_filling_moves",
            "face_episode_moves"]
 
 #: Training designs by name (see the module docstring).
-DESIGNS = ("covering", "space_filling", "from_zero", "face_episodes")
+DESIGNS = ("covering", "space_filling", "from_zero", "face_episodes", "covering_still")
 DEFAULT_DESIGN = "covering"
 
 #: Consecutive space-filling moves closer than this fraction of the median inter-point
@@ -53,6 +63,9 @@ MIN_STEP_FRACTION = 0.25
 
 #: Shares of the move kinds in the covering design (space-filling, hold, face).
 COVERING_SHARES = (0.4, 0.35, 0.25)
+
+#: ``covering_still``: moves 20, 40, ... (1-based) repeat the previous command (5 % of the moves).
+STILL_EVERY = 20
 
 #: Largest number of moves a design builds (a guard against typing errors, not a memory limit).
 MAX_MOVES = 1_000_000
@@ -100,6 +113,10 @@ def training_moves(afm: AnalyticForwardModel, design: str, n: int, seed: int, ep
         return out[:n]
     if design == "face_episodes":
         return face_episode_moves(afm, n, np.random.default_rng(seed), episode_moves)
+    if design == "covering_still":
+        u = covering_moves(afm, n, seed=seed)
+        u[STILL_EVERY - 1::STILL_EVERY] = u[STILL_EVERY - 2::STILL_EVERY][: len(u[STILL_EVERY - 1::STILL_EVERY])]
+        return u
     raise ConfigError(f"training design '{design}' is not one of {', '.join(DESIGNS)}")
 
 
