@@ -115,7 +115,8 @@ def training_moves(afm: AnalyticForwardModel, design: str, n: int, seed: int, ep
         return face_episode_moves(afm, n, np.random.default_rng(seed), episode_moves)
     if design == "covering_still":
         u = covering_moves(afm, n, seed=seed)
-        u[STILL_EVERY - 1::STILL_EVERY] = u[STILL_EVERY - 2::STILL_EVERY][: len(u[STILL_EVERY - 1::STILL_EVERY])]
+        still = np.arange(STILL_EVERY - 1, n, STILL_EVERY)
+        u[still] = u[still - 1]  # never a still move itself: STILL_EVERY >= 2
         return u
     raise ConfigError(f"training design '{design}' is not one of {', '.join(DESIGNS)}")
 
