@@ -16,10 +16,11 @@ def _afm() -> AnalyticForwardModel:
     return AnalyticForwardModel(load_stage_config(str(ROOT / "configs/stage/table1.yaml")).stage)
 
 
-def _inputs(afm: AnalyticForwardModel, U: np.ndarray) -> np.ndarray:
-    """x = [t_prev; q_prev; u] (eq. 3) of a move sequence from the zero state (t_prev is not read here)."""
+def _inputs(afm: AnalyticForwardModel, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """x = [t_prev; q_prev; u] (eq. 3) of a move sequence from the zero state (t_prev is not read
+    here), and each move's step of the pose, u - u_prev; shapes (n, n_s + n_p) and (n, n_p)."""
     U_prev = np.vstack([np.zeros(afm.n_p), U[:-1]])
-    return np.hstack([np.zeros((len(U), 1)), U_prev @ afm.K.T, U])
+    return np.hstack([np.zeros((len(U), 1)), U_prev @ afm.K.T, U]), U - U_prev
 
 
 def test_still_moves_repeat_the_previous_command_and_the_rest_is_the_covering_design():
@@ -37,7 +38,7 @@ def test_still_moves_repeat_the_previous_command_and_the_rest_is_the_covering_de
     other = np.setdiff1d(np.arange(n), still)
     np.testing.assert_array_equal(u[other], cov[other])
     assert afm.workspace.contains(u).all()
-    X = _inputs(afm, u)
+    X, _ = _inputs(afm, u)
     cands = candidate_features(afm)
     steps = [j for j, nm in enumerate(cands.names) if nm.startswith("d")]  # dq<i>:*, d<c>:sq
     assert {"dq1:sq", "dq4:sat", "dz:sq", "drx:sq"} <= {cands.names[j] for j in steps}
@@ -62,8 +63,7 @@ def test_still_moves_identify_a_floor_the_step_sources_would_hide():
     ok = 0
     for seed in range(20):
         U = training_moves(afm, "covering_still", n, seed)
-        X = _inputs(afm, U)
-        du = U - np.vstack([np.zeros(afm.n_p), U[:-1]])
+        X, du = _inputs(afm, U)
         v = floor**2 + (c * (du[:, 1] + mix * du[:, 0])) ** 2 + (c * (du[:, 2] - mix * du[:, 0])) ** 2
         r = np.sqrt(v) * np.random.default_rng(1000 + seed).standard_normal(n)
         cands = candidate_features(afm).rescaled(X)
