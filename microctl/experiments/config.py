@@ -83,7 +83,7 @@ class Training:
         One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
-    noise_model, linear_trend, mean_shift, g_inputs, g_start, restarts, max_iter
+    noise_model, linear_trend, mean_shift, g_inputs, g_start, restarts, max_iter, noise_sources
         The residual model (:class:`~microctl.models.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
         Refinement rounds after the first fit (0: none): each runs incremental episodes,
@@ -113,6 +113,7 @@ class Training:
     g_start: str = same_setting(ResidualModelSettings, "g_start")
     restarts: int = same_setting(ResidualModelSettings, "restarts")
     max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
+    noise_sources: tuple[str, ...] | None = same_setting(ResidualModelSettings, "noise_sources")
     refine_rounds: int = setting(0, lo=0, hi=20)
     refine_moves: int = setting(40, lo=1, hi=MAX_MOVES)
     refine_episode_targets: int = setting(4, lo=1, hi=1000)
@@ -121,13 +122,16 @@ class Training:
 
     def __post_init__(self) -> None:
         validate_settings(self, "training setting")
+        if self.noise_sources is not None:
+            object.__setattr__(self, "noise_sources", tuple(self.noise_sources))
+        self.model_settings(0)  # the residual model's own rules across fields (ConfigError)
 
     def model_settings(self, seed: int) -> ResidualModelSettings:
         """The residual model these settings describe, with the fit's seed."""
         return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend,
                                      mean_shift=self.mean_shift, g_inputs=self.g_inputs, g_start=self.g_start,
                                      restarts=self.restarts,
-                                     max_iter=self.max_iter, seed=seed)
+                                     max_iter=self.max_iter, seed=seed, noise_sources=self.noise_sources)
 
 
 @dataclass(frozen=True)
@@ -251,6 +255,8 @@ class ExperimentConfig:
         tr = asdict(self.training)
         if tr["refine_target_range_um"] is not None:
             tr["refine_target_range_um"] = list(tr["refine_target_range_um"])
+        if tr["noise_sources"] is not None:
+            tr["noise_sources"] = list(tr["noise_sources"])
         inc = asdict(self.incremental)
         inc["targets_um"] = list(inc["targets_um"])
         return {

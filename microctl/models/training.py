@@ -23,6 +23,7 @@ from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
+from microctl.models.declared_sources import declared_selection
 from microctl.models.direction import log_directions
 from microctl.models.eafm import bind_to_stage, context_names
 from microctl.models.mean_shift import trend_features, with_mean_shift
@@ -194,6 +195,11 @@ class ResidualModelSettings:
         Where the exact form's fit starts g (:class:`~microctl.gp.trainer.VHGPR`): ``"f"``
         (default: at the homoscedastic GP) or ``"residuals"`` (one more run, from a GP on the log
         squared residuals, :mod:`microctl.gp.noise_start`).
+    noise_sources : tuple of str or None
+        With the ``dictionary`` noise model: None (default) lets the data select the noise
+        sources; a list names them instead (candidates such as ``dq4:sat@4`` or quantities such as
+        ``dq4``, ``drx``; an empty list: none), each kept in the model
+        (:mod:`microctl.models.declared_sources`).
     """
 
     noise_model: str = setting("dictionary", choices=NOISE_MODELS)
@@ -208,9 +214,15 @@ class ResidualModelSettings:
     mean_shift: bool = setting(True)
     g_inputs: str = setting("raw", choices=tuple(G_INPUTS))
     g_start: str = setting("f", choices=G_STARTS)
+    noise_sources: tuple[str, ...] | None = setting(None, kind="names", none_ok=True)
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
+        if self.noise_sources is not None:
+            object.__setattr__(self, "noise_sources", tuple(self.noise_sources))  # a list from a caller: kept as a tuple
+            if self.noise_model != "dictionary":
+                raise ConfigError(f"residual model setting noise_sources: names sources of the 'dictionary' noise model, "
+                                  f"not of {self.noise_model!r}; use noise_model: dictionary or leave it unset")
         if self.se == "off" and not self.linear_trend:
             raise ConfigError("residual model setting se: 'off' needs linear_trend: true (without the trend and "
                               "the SE part the mean correction would be a constant); use se: auto or on")
@@ -317,7 +329,8 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     1. the residual model with the physical noise model (every actuator's stick-slip) gives the
        mean correction f and so the residual r = y - f(x) at the training moves;
     2. :func:`~microctl.models.noise_dictionary.select_features` chooses among the stage's candidate
-       sources (and a load tilt along the pose) by evidence, with a multiple-testing discipline;
+       sources (and a load tilt along the pose) by evidence, with a multiple-testing discipline
+       (or takes the sources ``noise_sources`` names, :mod:`microctl.models.declared_sources`);
        rows whose reading is grossly off under that noise model fitted without them, and under
        the first model refitted without them, are set aside (:func:`_screened`,
        :mod:`microctl.models.outlier_screen`) and steps 1-2 redone without them;
@@ -356,12 +369,14 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
               "candidates": len(cands.names) + 1}
     if sel.swaps:
         record["shape_swaps"] = [list(sw) for sw in sel.swaps]
+    if st.noise_sources is not None:
+        record["declared"] = list(st.noise_sources)
     record["screened"] = screened
     model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time)
     # a source the fit inside the bound does not support (its coefficient within one Laplace
     # standard error of 0, or its share of the prior variance below PRUNE_SHARE at every training
-    # move) is not a source of this stage: refit without it
-    keep = _effective_sources(model, model.X) if names else []
+    # move) is not a source of this stage: refit without it (sources the user named are kept)
+    keep = _effective_sources(model, model.X) if names and st.noise_sources is None else list(range(len(names)))
     if len(keep) < len(names):
         record["dropped_in_fit"] = [names[j] for j in range(len(names)) if j not in keep]
         record["selected"] = [names[j] for j in keep]
@@ -378,15 +393,22 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
             data, afm, _with_chosen_se(st, model), rows, offs, names, shapes, params, gates, max_time, warm, mf))
         if shift is not None:
             record["mean_shift"] = shift
-    # every candidate added alone at its best size, with its likelihood gain: the controller's
-    # least-motion rule (microctl.control.credible) weighs these alternatives by their evidence
+    # the controller's least-motion rule (microctl.control.credible) weighs the alternatives by their
+    # evidence (none where the user named the sources: those are the stage's, no other is weighed)
+    if st.noise_sources is None:
+        record["alternatives"] = _alternatives_record(model, data, afm, cands)
+    record["n"] = int(len(data.y))
+    return replace(model, info={**model.info, "noise_selection": record})
+
+
+def _alternatives_record(model: FittedVHGPR, data: ResidualData, afm: AnalyticForwardModel, cands: Any) -> dict:
+    """Every candidate added alone at its best size to ``model``'s noise, with its likelihood gain:
+    ``{name: [coefficient per unit of the candidate at scale 1, gain in nats]}``."""
     Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
     pred = model.predict(Xc if model.n_context else data.X)
     coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(Xc))
-    coef = coef / np.asarray(cands.scale, dtype=float)  # per unit of the candidate at scale 1
-    record["alternatives"] = {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
-    record["n"] = int(len(data.y))
-    return replace(model, info={**model.info, "noise_selection": record})
+    coef = coef / np.asarray(cands.scale, dtype=float)
+    return {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
 
 
 def _positions(data: ResidualData, afm: AnalyticForwardModel) -> np.ndarray:
@@ -452,7 +474,10 @@ def _select_sources(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
     cands = candidate_features(afm, context=True).rescaled(Xc)
     U = data.X[:, afm.n_s:]
     mu, sd = U.mean(axis=0), np.maximum(U.std(axis=0), 1e-12)
-    sel = select_features(r, cands.values(Xc), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
+    if st.noise_sources is None:
+        sel = select_features(r, cands.values(Xc), cands.names, tilt_inputs=(U - mu) / sd, alpha=SELECTION_ALPHA)
+    else:  # named by the user: no test, kept (microctl.models.declared_sources)
+        sel = declared_selection(r, cands.values(Xc), cands.names, st.noise_sources)
     return _Sources(st, first, idx, r, cands, sel, mu, sd)
 
 

@@ -170,7 +170,9 @@ class Rule:
     Attributes
     ----------
     kind : str
-        ``"bool"``, ``"int"``, ``"float"`` or ``"choice"`` (inferred from the default).
+        ``"bool"``, ``"int"``, ``"float"`` or ``"choice"`` (inferred from the default), or ``"names"``:
+        a list of distinct names (non-empty strings without spaces), kept as a tuple; which names
+        are valid is for the reader of the setting to check (they may depend on the stage).
     lo, hi : float or None
         Inclusive bounds (``lo_open``: lo excluded).
     choices : tuple of str
@@ -191,6 +193,8 @@ class Rule:
             text = "true or false"
         elif self.kind == "choice":
             text = f"one of {', '.join(self.choices)}"
+        elif self.kind == "names":
+            text = "a list of distinct names"
         else:
             noun = "an integer" if self.kind == "int" else "a number"
             if self.lo is None and self.hi is None:
@@ -216,6 +220,11 @@ class Rule:
             if not isinstance(value, str) or value not in self.choices:
                 raise bad
             return value
+        if self.kind == "names":
+            if (not isinstance(value, (list, tuple)) or len(set(value)) != len(value)
+                    or not all(isinstance(v, str) and v and not any(c.isspace() for c in v) for v in value)):
+                raise bad
+            return tuple(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise bad
         if self.kind == "int":

@@ -61,6 +61,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--g-start", choices=G_STARTS, default=d.g_start,
                    help=f"where the noise GP's fit starts (default {d.g_start}: the homoscedastic GP; residuals: "
                    "one more run from the log squared residuals, docs/vhgpr.md)")
+    p.add_argument("--noise-source", dest="noise_sources", action="append", metavar="NAME",
+                   help="name a noise source instead of letting the data select them (repeat for each; a candidate "
+                   "such as dq4:sat@4 or a quantity such as dq4 or drx, docs/vhgpr.md; 'none': no source)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
                    help=f"the GP's form (default {d.gp}: exact up to {AUTO_SPARSE_ROWS} rows, sparse above)")
     p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
@@ -72,6 +75,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
+def _named_sources(given: list[str] | None) -> tuple[str, ...] | None:
+    """``--noise-source`` values as the setting: None when not given, () for ``none`` alone."""
+    if given is None:
+        return None
+    if "none" in given and len(given) > 1:
+        raise ConfigError(f"--noise-source: 'none' names no source and cannot go with others, got {given}")
+    return () if given == ["none"] else tuple(given)
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.se == "off" and not args.linear_trend:
         raise ConfigError("--se off needs the linear trend (without the trend and the SE part the mean correction "
@@ -80,7 +92,7 @@ def _run(args: argparse.Namespace) -> int:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed, gp=args.gp,
                                          inducing=args.inducing, mean_shift=args.mean_shift, g_inputs=args.g_inputs,
-                                         g_start=args.g_start)
+                                         g_start=args.g_start, noise_sources=_named_sources(args.noise_sources))
     except SettingError as exc:  # name the option, not the field
         raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
@@ -131,6 +143,11 @@ def describe_noise(summary: dict) -> str:
     """One line: the noise model; for ``dictionary`` the sources the data selected, for ``physical``
     the floor and per-actuator stick-slip (± standard error)."""
     sel = summary.get("selection")
+    named = None if sel is None else sel.get("declared")
+    if summary["noise_model"] == "dictionary" and named is not None:  # --noise-source: named, not selected
+        src = ", ".join(summary["sources"]) or "none"
+        return (f"noise model dictionary: floor std {summary['floor_std_um']:.4f} µm; sources named "
+                f"({', '.join(named) or 'none'}), not selected by the data: {src}")
     if summary["noise_model"] == "dictionary" and not summary["sources"]:
         return (f"noise model dictionary: no noise source selected among {sel['candidates']} candidates "
                 f"(floor std {summary['floor_std_um']:.4f} µm everywhere; g's GP models the rest)")
