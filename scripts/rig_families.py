@@ -315,6 +315,32 @@ class FamilyRig:
         """A fresh stage of this rig (noise streams from ``seed``, default the rig's)."""
         return FamilyStage(self, self.seed if seed is None else seed)
 
+    def true_sources(self) -> tuple[str, ...]:
+        """The noise-source quantities of the package's dictionary (microctl.models.noise_dictionary)
+        that carry this rig's scatter: what the ``told`` reference of scripts/bench_rigs.py names.
+
+        Per term: the step ``dq<i>`` of each actuator of a stick_slip, settling, reversal or stiction
+        term; the position ``q<i>`` of a stroke_patch or extension term; the load ``f<i>`` of the light
+        ball (the other balls stay loaded: their scatter is nearly the floor); the pose's rotations
+        ``rx, ry`` for gauge_tilt; the rotation steps ``drx, dry`` for hinge_slip.
+        """
+        out: list[str] = []
+        for t in self.terms:
+            k = t["kind"]
+            if k in ("stick_slip", "settling", "reversal", "stiction"):
+                out += [f"dq{i + 1}" for i in t["act"]]
+            elif k in ("stroke_patch", "extension"):
+                out += [f"q{i + 1}" for i in t["act"]]
+            elif k == "light_ball":
+                out.append(f"f{t['ball'] + 1}")
+            elif k == "gauge_tilt":
+                out += ["rx", "ry"]
+            elif k == "hinge_slip":
+                out += ["drx", "dry"]
+            else:
+                raise ValueError(f"no dictionary quantity for noise term {k!r}")
+        return tuple(dict.fromkeys(out))
+
     def describe(self) -> dict:
         """What was drawn (JSON-able)."""
         sim = self.config.backend.simulated

@@ -136,3 +136,22 @@ def test_rigs_are_seeded_and_keep_every_ball_loaded():
     assert a.describe() == b.describe()
     assert rf._all_balls_loaded(a.config)
     assert rf.make_family_rig("clean", 0).terms == [] and rf.make_family_rig("clean", 0).driver_std_um == 0.0
+
+
+def test_true_sources_name_dictionary_quantities_of_the_terms():
+    """The ``told`` reference's names (FamilyRig.true_sources) are quantities of the package's noise
+    dictionary for the rig's stage, one per physical carrier of the drawn terms."""
+    from microctl.models.afm import AnalyticForwardModel
+    from microctl.models.noise_dictionary import candidate_features, quantity
+
+    want = {"clean": lambda t: [], "stick_slip": lambda t: [f"dq{i + 1}" for i in t["act"]],
+            "stroke_patch": lambda t: [f"q{i + 1}" for i in t["act"]], "light_ball": lambda t: [f"f{t['ball'] + 1}"],
+            "gauge_tilt": lambda t: ["rx", "ry"], "hinge_slip": lambda t: ["drx", "dry"]}
+    for family, expect in want.items():
+        rig = rf.make_family_rig(family, 3)
+        names = rig.true_sources()
+        assert list(names) == [q for t in rig.terms for q in expect(t)], family
+        quantities = {quantity(nm) for nm in candidate_features(AnalyticForwardModel(rig.config.stage), context=True).names}
+        assert set(names) <= quantities, family
+    mix = rf.make_family_rig("mix", 5)
+    assert len(mix.true_sources()) >= 2 and mix.true_sources()[0] == f"dq{mix.terms[0]['act'][0] + 1}"
