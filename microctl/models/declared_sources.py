@@ -76,7 +76,7 @@ def declared_selection(residual: np.ndarray, candidates: np.ndarray, names: Sequ
         else:
             raise ConfigError(f"noise source {name!r} is neither a noise-source candidate nor a quantity of this stage; "
                               f"valid quantities: {', '.join(quantities)} (or a candidate name such as "
-                              f"{names[0]!r}: docs/vhgpr.md, the noise dictionary)")
+                              f"{names[0]!r}: docs/controller.md, the noise model)")
         if not options or options[0] in chosen:
             raise ConfigError(f"noise source {name!r} names a source already named ({names[options[0]] if options else name}); "
                               "name each source once")

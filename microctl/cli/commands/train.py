@@ -63,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "one more run from the log squared residuals, docs/vhgpr.md)")
     p.add_argument("--noise-source", dest="noise_sources", action="append", metavar="NAME",
                    help="name a noise source instead of letting the data select them (repeat for each; a candidate "
-                   "such as dq4:sat@4 or a quantity such as dq4 or drx, docs/vhgpr.md; 'none': no source)")
+                   "such as dq4:sat@4 or a quantity such as dq4 or drx, docs/controller.md; 'none': no source)")
     p.add_argument("--gp", choices=GP_FORMS, default=d.gp,
                    help=f"the GP's form (default {d.gp}: exact up to {AUTO_SPARSE_ROWS} rows, sparse above)")
     p.add_argument("--inducing", type=int, default=d.inducing, metavar="M",
