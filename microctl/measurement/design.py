@@ -49,6 +49,7 @@ import numpy as np
 
 from microctl.errors import ConfigError, SolveError
 from microctl.models.afm import AnalyticForwardModel
+from microctl.util.signals import interrupts_deferred
 
 __all__ = ["DESIGNS", "DEFAULT_DESIGN", "STILL_EVERY", "training_moves", "covering_moves", "space_filling_moves",
            "face_episode_moves"]
@@ -129,7 +130,10 @@ def _sobol_in_polytope(afm: AnalyticForwardModel, n: int, seed: int) -> np.ndarr
     from scipy.stats import qmc  # here, not at import: scipy.stats costs most of a second of start-up
 
     ws = afm.workspace
-    sobol = qmc.Sobol(d=ws.u_lo.size, scramble=True, seed=np.random.default_rng(seed))
+    # a Ctrl-C inside the first Sobol's set-up (compiled code that cannot raise) would be printed as a
+    # traceback: held until it is done, then raised here (microctl.util.signals)
+    with interrupts_deferred():
+        sobol = qmc.Sobol(d=ws.u_lo.size, scramble=True, seed=np.random.default_rng(seed))
     m = max(int(np.ceil(np.log2(max(4 * n, 16)))), 4)
     return ws.first_inside(n, lambda: ws.map_unit(sobol.random_base2(m=m)), 64,
                            "the workspace polytope is too thin to fill from its bounding box")
