@@ -253,11 +253,11 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
            "gauge_um": cfg.backend.simulated.gauge_noise_std_um,
            "friction": {f"q{e.actuator}": e.std_per_um for e in eff.actuator_friction},
            "gains": [g.gain for g in eff.actuator_gain], "runs": []}
+    told = tuple(f"dq{e.actuator}" for e in eff.actuator_friction)  # the stick-slip actuators (method told)
     for n in sizes:
         for name in methods:
             meth = METHODS[name]
             t0 = time.perf_counter()
-            told = tuple(f"dq{e.actuator}" for e in eff.actuator_friction)
             model = train_on_rig(cfg, afm, meth.design, n, seed, _told(meth, told))
             t_fit = time.perf_counter() - t0
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
@@ -268,13 +268,17 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
                 prev, last = None, direction.initial(afm.n_q)  # the directions, from the commands sent
                 for target in TARGETS_UM:
                     s = stage.state
-                    res = ctrls(last).solve(target, s, u_init=prev)
+                    ctrl = ctrls(last)
+                    res = ctrl.solve(target, s, u_init=prev)
                     last = direction.after_move(last, s[1:], res.q)
                     o = oracle.solve(target, s)
                     a = base.solve(target, s)
                     true_mean = float(stage.true_mean(s, res.u))
                     true_std = math.sqrt(float(stage.true_var(s, res.u)))
-                    rows.append({"target_um": target, "err_um": true_mean - target, "std_um": true_std,
+                    (noise_c, f_c), (noise_o, f_o) = _model_noise(ctrl.eafm, s, res.u), _model_noise(ctrl.eafm, s, o.u)
+                    rows.append({"pred_noise_std_um": noise_c, "f_std_um": f_c, "pred_noise_std_oracle_um": noise_o,
+                                 "f_std_oracle_um": f_o, "target_um": target, "err_um": true_mean - target,
+                                 "std_um": true_std,
                                  "oracle_std_um": o.predicted_std_um,
                                  "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
                                  "pred_std_um": res.predicted_std_um, "q_um": res.q.round(3).tolist(),

@@ -77,3 +77,17 @@ def test_a_failing_target_is_the_controllers_loss_only_where_the_model_ranks_the
     lines = [bench._fmt_fail(f) for f in bench.failing_targets(results)]
     assert len(lines) == 4
     assert "the controller's loss" in lines[0] and "the model's loss" in lines[1]
+
+
+def test_the_default_rigs_give_every_field_the_summary_reads():
+    """``--rigs`` without ``--family`` (the default stick-slip rigs, run_rig) scores each target with
+    the fields the family rigs give (it raised KeyError in the summary until 2026-11-29), and the
+    ``told`` reference names the rig's stick-slip actuators."""
+    bench = _bench()
+    res = bench.run_rig(0, (30,), ("told",))
+    run = res["runs"][0]
+    assert run["selected"] and {nm.split(":")[0] for nm in run["selected"]} == {f"d{q}" for q in res["friction"]}
+    for t in run["targets"]:
+        assert t["pred_noise_std_um"] > 0 and t["pred_noise_std_oracle_um"] > 0 and t["f_std_um"] >= 0
+    (row,) = bench.summarise([res], (30,), ("told",))
+    assert row["rigs"] == 1 and row["cal_n"] == 4
