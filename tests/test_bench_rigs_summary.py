@@ -81,7 +81,7 @@ def test_a_failing_target_is_the_controllers_loss_only_where_the_model_ranks_the
 
 def test_the_default_rigs_give_every_field_the_summary_reads():
     """``--rigs`` without ``--family`` (the default stick-slip rigs, run_rig) scores each target with
-    the fields the family rigs give (it raised KeyError in the summary until 2026-11-29), and the
+    the fields the family rigs give (at 7594c53 the summary raised KeyError on them), and the
     ``told`` reference names the rig's stick-slip actuators."""
     bench = _bench()
     res = bench.run_rig(0, (30,), ("told",))
