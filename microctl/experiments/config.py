@@ -122,8 +122,6 @@ class Training:
 
     def __post_init__(self) -> None:
         validate_settings(self, "training setting")
-        if self.noise_sources is not None:
-            object.__setattr__(self, "noise_sources", tuple(self.noise_sources))
         self.model_settings(0)  # the residual model's own rules across fields (ConfigError)
 
     def model_settings(self, seed: int) -> ResidualModelSettings:

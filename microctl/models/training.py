@@ -218,11 +218,9 @@ class ResidualModelSettings:
 
     def __post_init__(self) -> None:
         validate_settings(self, "residual model setting")
-        if self.noise_sources is not None:
-            object.__setattr__(self, "noise_sources", tuple(self.noise_sources))  # a list from a caller: kept as a tuple
-            if self.noise_model != "dictionary":
-                raise ConfigError(f"residual model setting noise_sources: names sources of the 'dictionary' noise model, "
-                                  f"not of {self.noise_model!r}; use noise_model: dictionary or leave it unset")
+        if self.noise_sources is not None and self.noise_model != "dictionary":
+            raise ConfigError(f"residual model setting noise_sources: names sources of the 'dictionary' noise model, "
+                              f"not of {self.noise_model!r}; use noise_model: dictionary or leave it unset")
         if self.se == "off" and not self.linear_trend:
             raise ConfigError("residual model setting se: 'off' needs linear_trend: true (without the trend and "
                               "the SE part the mean correction would be a constant); use se: auto or on")

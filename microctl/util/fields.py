@@ -267,7 +267,8 @@ class SettingError(ConfigError):
 
 
 def validate_settings(obj: Any, what: str) -> None:
-    """Check every :func:`setting` field of a dataclass instance (call from ``__post_init__``).
+    """Check every :func:`setting` field of a dataclass instance (call from ``__post_init__``); a
+    ``names`` field given as a list is stored as the tuple its rule returns.
 
     Raises
     ------
@@ -276,9 +277,11 @@ def validate_settings(obj: Any, what: str) -> None:
     """
     for name, rule in _rules(type(obj)):
         try:
-            rule.check(getattr(obj, name))
+            value = rule.check(getattr(obj, name))
         except ValueError as exc:
             raise SettingError(what, name, str(exc)) from None
+        if rule.kind == "names" and value is not None:  # a caller's list kept as the tuple it checked
+            object.__setattr__(obj, name, value)
 
 
 def read_settings(ck: FieldReader, raw: Any, path: str, cls: type, **fixed: Any) -> Any:
