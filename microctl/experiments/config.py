@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from microctl.control.controller import ControllerSettings
+from microctl.control.refine import EPISODE_TARGETS, REFINE_STRATEGIES
 from microctl.errors import ConfigError
 import microctl.experiments.controllers as registry
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, MAX_MOVES
@@ -34,9 +35,6 @@ from microctl.util.fields import (
 #: Controllers of an experiment file that does not list them (the registry's defaults:
 #: :mod:`microctl.experiments.controllers` lists every controller an experiment can compare).
 DEFAULT_CONTROLLERS = registry.default_names()
-
-#: How refinement rounds choose their moves (see :class:`Training`).
-REFINE_STRATEGIES = ("uncertainty", "on_policy")
 
 
 @dataclass(frozen=True)
@@ -116,7 +114,7 @@ class Training:
     noise_sources: tuple[str, ...] | None = same_setting(ResidualModelSettings, "noise_sources")
     refine_rounds: int = setting(0, lo=0, hi=20)
     refine_moves: int = setting(40, lo=1, hi=MAX_MOVES)
-    refine_episode_targets: int = setting(4, lo=1, hi=1000)
+    refine_episode_targets: int = setting(EPISODE_TARGETS, lo=1, hi=1000)
     refine_target_range_um: tuple[float, float] | None = None
     refine_strategy: str = setting("uncertainty", choices=REFINE_STRATEGIES)
 

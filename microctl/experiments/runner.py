@@ -31,6 +31,7 @@ from microctl.backends.base import StageBackend
 from microctl.control.controller import ControlResult, OptimalController
 from microctl.control.context import ByDirection
 from microctl.control.memory import with_memory
+from microctl.control.refine import check_target_range, refinement_moves
 from microctl.errors import BackendError, SolveError
 import microctl.experiments.controllers as registry
 from microctl.experiments.config import ExperimentConfig
@@ -192,54 +193,20 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
                             "refine_strategy": tr.refine_strategy, "explored_moves": 0}
     eafm = _fit(run, info, 0)
     if tr.refine_rounds:
-        lo, hi = tr.refine_target_range_um or afm.t_range()
+        targets = check_target_range(eafm, tr.refine_target_range_um, "training.refine_target_range_um")
         rng = np.random.default_rng(cfg.seeds.refine_targets)
         for r in range(1, tr.refine_rounds + 1):
             ctrl = OptimalController(eafm, cfg.controller)
-            done = 0
             with run.backend(cfg.seeds.training_stage + r) as b, \
                     Progress(tr.refine_moves, f"refinement round {r}", quiet=run.quiet) as pr:
-                while done < tr.refine_moves:
-                    rec.move(b, np.zeros(afm.n_p), trial=r, target_um=0.0, controller="eafm")  # back to zero
-                    done += 1
+                for mv in refinement_moves(ctrl, eafm, tr.refine_moves, targets, rng, lambda: b.state,
+                                           episode_targets=tr.refine_episode_targets, strategy=tr.refine_strategy):
+                    rec.move(b, mv.u, trial=r, target_um=mv.target_um, controller=mv.label)
+                    info["explored_moves"] += mv.label == "explore"
                     pr.step()
-                    prev_u = None
-                    for target in np.sort(rng.uniform(lo, hi, tr.refine_episode_targets)):
-                        if done >= tr.refine_moves:
-                            break
-                        try:
-                            res = ctrl.solve(float(target), b.state, u_init=prev_u)
-                        except SolveError:
-                            continue
-                        u, label = res.u, "eafm"
-                        if tr.refine_strategy == "uncertainty":
-                            u, label = _explore(ctrl, eafm, float(target), b.state, res.u)
-                            info["explored_moves"] += label == "explore"
-                        rec.move(b, u, trial=r, target_um=float(target), controller=label)
-                        prev_u = u
-                        done += 1
-                        pr.step()
             eafm = _fit(run, info, r)
     run.timings_s["training"] = time.perf_counter() - t0
     return eafm, info
-
-
-#: Refinement explores among candidate optima within this factor of the best objective.
-EXPLORE_RATIO = 2.0
-
-
-def _explore(ctrl: OptimalController, eafm: EAFM, target: float, s: np.ndarray, u_opt: np.ndarray
-             ) -> tuple[np.ndarray, str]:
-    """Refinement move for ``target``: among the candidate optimal poses of the redundant set
-    (grid local minima within :data:`EXPLORE_RATIO` of the best objective) and the
-    controller's own choice, the one whose noise prediction is least certain
-    (:meth:`EAFM.noise_uncertainty`): the model learns where the optimum may lie, not only
-    where the controller already goes. Returns the pose and ``"explore"`` or ``"eafm"``."""
-    U, _ = ctrl.candidates(target, s, max_ratio=EXPLORE_RATIO)
-    U = np.vstack([u_opt[None, :], U])
-    unc = eafm.noise_uncertainty(s, U)
-    k = int(np.argmax(unc))
-    return (U[k], "explore") if k > 0 and unc[k] > unc[0] else (u_opt, "eafm")
 
 
 def _fit(run: _Run, info: dict, round_: int) -> EAFM:

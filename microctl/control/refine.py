@@ -1,0 +1,152 @@
+"""Refinement: training moves chosen by the trained model, where it is least sure of the optimum.
+
+A designed log (``microctl collect``, :mod:`microctl.measurement.design`) spreads its moves over
+the workspace without knowing where the controller will go. The poses eq. 4 picks are the quiet
+ones, and the quiet pose is often a move the design hardly makes: a pure lift of every actuator
+on a stage whose hinge slips with the platform's rotation, a small step of an actuator whose
+stiction breaks away past a threshold. There the noise floor and the sources that decide the
+choice are extrapolated, and the model can rank the poses wrongly and state a repeatability the
+stage does not have. Refinement executes the moves the controller would consider: episodes from
+the zero state to random targets (sorted, as the incremental experiment of IV-D climbs), and
+for each target, among the candidate optimal poses of the redundant set (the local minima of
+the controller's objective within :data:`EXPLORE_RATIO` of the best) and the controller's own
+choice, the pose whose predicted log noise variance is least certain
+(:meth:`microctl.models.eafm.EAFM.noise_uncertainty`: g's variance plus the noise parameters'
+variance). The model is then trained again on everything.
+
+The moves are a generator: each is computed from the stage's state after the previous one was
+executed, so whoever executes them (``microctl collect --refine``, the experiments' training,
+``scripts/bench_rigs.py``) logs them as it logs designed moves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from microctl.control.controller import OptimalController
+from microctl.errors import ConfigError, SolveError
+from microctl.models.eafm import EAFM
+
+__all__ = ["RefineMove", "REFINE_STRATEGIES", "EXPLORE_RATIO", "EPISODE_TARGETS", "explore", "refinement_moves",
+           "check_target_range"]
+
+#: ``uncertainty``: the least certain candidate optimum (default); ``on_policy``: the controller's choice.
+REFINE_STRATEGIES = ("uncertainty", "on_policy")
+#: Candidate optima within this factor of the best objective are explored.
+EXPLORE_RATIO = 2.0
+#: Targets per episode from the zero state (the incremental experiment's four).
+EPISODE_TARGETS = 4
+
+
+@dataclass(frozen=True)
+class RefineMove:
+    """One refinement move.
+
+    Attributes
+    ----------
+    u : ndarray, shape (n_p,)
+        The command.
+    target_um : float
+        The episode's target (0 for the return to the zero state).
+    label : str
+        ``"zero"`` (the return to the zero state that starts an episode), ``"eafm"`` (the
+        controller's choice) or ``"explore"`` (a less certain candidate optimum).
+    """
+
+    u: np.ndarray
+    target_um: float
+    label: str
+
+
+def explore(ctrl: OptimalController, eafm: EAFM, target_um: float, s: np.ndarray, u_opt: np.ndarray
+            ) -> tuple[np.ndarray, str]:
+    """The refinement pose for one target: among the candidate optimal poses (grid local minima
+    within :data:`EXPLORE_RATIO` of the best objective) and the controller's choice ``u_opt``,
+    the one whose noise prediction is least certain.
+
+    Returns
+    -------
+    u : ndarray, shape (n_p,)
+    label : str
+        ``"explore"`` for a candidate, ``"eafm"`` when it is the controller's choice.
+    """
+    U, _ = ctrl.candidates(target_um, s, max_ratio=EXPLORE_RATIO)
+    U = np.vstack([u_opt[None, :], U])
+    unc = eafm.noise_uncertainty(s, U)
+    k = int(np.argmax(unc))
+    return (U[k], "explore") if k > 0 and unc[k] > unc[0] else (u_opt, "eafm")
+
+
+def check_target_range(eafm: EAFM, target_range_um, where: str) -> tuple[float, float]:
+    """``target_range_um`` as (lo, hi) inside the AFM's reachable range; None gives that range.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``where`` and the reachable range, for a range that is not lo < hi inside it.
+    """
+    lo_r, hi_r = eafm.afm.t_range()
+    if target_range_um is None:
+        return float(lo_r), float(hi_r)
+    lo, hi = (float(v) for v in target_range_um)
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ConfigError(f"{where}: expected LO,HI with LO < HI (µm), got {lo:g},{hi:g}")
+    if lo < lo_r or hi > hi_r:
+        raise ConfigError(f"{where}: {lo:g},{hi:g} µm is not inside the stage's reachable range "
+                          f"{lo_r:.6g},{hi_r:.6g} µm")
+    return lo, hi
+
+
+def refinement_moves(ctrl: OptimalController, eafm: EAFM, n_moves: int, target_range_um: tuple[float, float],
+                     rng: np.random.Generator, state: Callable[[], np.ndarray], *,
+                     episode_targets: int = EPISODE_TARGETS, strategy: str = "uncertainty") -> Iterator[RefineMove]:
+    """``n_moves`` refinement moves (module docstring), each computed when it is asked for.
+
+    Parameters
+    ----------
+    ctrl : OptimalController
+        The controller of ``eafm``.
+    eafm : EAFM
+        The trained model.
+    n_moves : int
+        Moves to yield, the returns to the zero state included.
+    target_range_um : (float, float)
+        Targets are drawn uniformly from it, ``episode_targets`` per episode, sorted.
+    rng : numpy.random.Generator
+        Draws the targets.
+    state : callable
+        ``state() -> s``, shape (n_s,): the stage's state now (after the moves yielded so far
+        were executed).
+    episode_targets : int
+    strategy : {"uncertainty", "on_policy"}
+
+    Yields
+    ------
+    RefineMove
+        A target whose solve fails is skipped (the next one of the episode follows).
+    """
+    if strategy not in REFINE_STRATEGIES:
+        raise ConfigError(f"refinement strategy: expected one of {', '.join(REFINE_STRATEGIES)}, got {strategy!r}")
+    lo, hi = target_range_um
+    done = 0
+    while done < n_moves:
+        yield RefineMove(np.zeros(eafm.afm.n_p), 0.0, "zero")
+        done += 1
+        prev_u = None
+        for target in np.sort(rng.uniform(lo, hi, episode_targets)):
+            if done >= n_moves:
+                break
+            s = state()
+            try:
+                res = ctrl.solve(float(target), s, u_init=prev_u)
+            except SolveError:
+                continue
+            u, label = res.u, "eafm"
+            if strategy == "uncertainty":
+                u, label = explore(ctrl, eafm, float(target), s, res.u)
+            yield RefineMove(u, float(target), label)
+            prev_u = u
+            done += 1
