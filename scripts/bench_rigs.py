@@ -41,6 +41,9 @@ Methods (columns):
 - ``params``: the default with the noise parameters' uncertainty in the objective;
 - ``still``: the default trained on ``covering_still`` (every 20th move the previous command
   again, which reads the noise floor; microctl.measurement.design);
+- ``refined``: the default, trained on as many moves of which 40 % are refinement moves (rounds of
+  40 after the designed ones, each chosen where the model is least sure of the optimum, then
+  training again: ``microctl collect --refine``, microctl.control.refine);
 - ``told`` (a reference): the default told which dictionary quantities carry the rig's true
   scatter (``noise_sources``, microctl.models.declared_sources; rig_families.FamilyRig.true_sources)
   instead of selecting them. A family bar the ``told`` reference misses too is not missed by the
@@ -92,6 +95,7 @@ from microctl.control.controller import (  # noqa: E402
 )
 from microctl.control.context import ByDirection  # noqa: E402
 from microctl.control.oracle import OracleController  # noqa: E402
+from microctl.control.refine import refinement_moves  # noqa: E402
 from microctl.measurement.design import training_moves  # noqa: E402
 from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
@@ -123,12 +127,14 @@ TOOL_MM = [-40.957602214449594, 28.678821817552297, 10.0]
 
 @dataclass(frozen=True)
 class Method:
-    """A training design, a residual model and a controller objective."""
+    """A training design, a residual model and a controller objective; ``refine``: part of the
+    training moves chosen by the trained model (:func:`collect_and_train`)."""
 
     name: str
     design: str
     model: ResidualModelSettings
     controller: ControllerSettings
+    refine: bool = False
 
 
 METHODS = {
@@ -138,6 +144,10 @@ METHODS = {
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    # the default, with the same number of training moves of which 40 % are refinement moves
+    # (microctl collect --refine; microctl.control.refine): collect, train, then rounds of
+    # REFINE_ROUND_MOVES moves chosen by the model, each followed by training again
+    "refined": Method("refined", "covering", ResidualModelSettings(), ControllerSettings(), refine=True),
     # the default trained on the covering design with every 20th move a still move (the previous
     # command again: microctl.measurement.design, covering_still), which reads the noise floor
     "still": Method("still", "covering_still", ResidualModelSettings(), ControllerSettings()),
@@ -227,16 +237,54 @@ def make_rig(seed: int) -> tuple[StageConfig, int]:
 # --------------------------------------------------------------------------- one rig
 
 
+#: Method ``refined``: refinement rounds of this many moves, as many as fit in REFINE_SHARE of the
+#: training moves (1 of 125, 2 of 200), the targets of their episodes drawn from REFINE_TARGETS_UM
+#: (the working range of TARGETS_UM with a margin; what a user would give ``--target-range``).
+REFINE_ROUND_MOVES, REFINE_SHARE, REFINE_TARGETS_UM = 40, 0.4, (0.0, 30.0)
+
+
+def refine_rounds(n: int) -> int:
+    """Refinement rounds of the ``refined`` method for ``n`` training moves."""
+    return int(REFINE_SHARE * n) // REFINE_ROUND_MOVES
+
+
+def collect_and_train(open_stage, cfg: StageConfig, afm: AnalyticForwardModel, meth: Method, n: int, seed: int,
+                      settings: ResidualModelSettings):
+    """What a user runs: ``collect`` (``meth.design`` moves, seed ``seed``) to a log, ``train``; for a
+    refining method first ``n - R`` designed moves, then R refinement moves in rounds
+    (``collect --refine MODEL --append``, targets seeded by ``seed`` and the round), each
+    followed by ``train``. ``open_stage()`` gives the stage the moves run on (one stage for all).
+
+    Returns
+    -------
+    model : FittedVHGPR
+    data : ResidualData
+    log : MeasurementLog
+        Every executed move (designed and refinement), in order.
+    """
+    rounds = refine_rounds(n) if meth.refine else 0
+    with tempfile.TemporaryDirectory() as tmp, open_stage() as stage:
+        log_path = Path(tmp) / "train.csv"
+        run_collect(stage, training_moves(afm, meth.design, n - rounds * REFINE_ROUND_MOVES, seed), log_path, quiet=True)
+        for r in range(rounds + 1):
+            log = read_log(log_path, cfg.stage, min_rows=5)
+            data = residual_dataset(log, afm)
+            model = train_residual_model(data, afm, settings)
+            if r < rounds:
+                eafm = EAFM(afm, model)
+                moves = refinement_moves(OptimalController(eafm, meth.controller), eafm, REFINE_ROUND_MOVES,
+                                         REFINE_TARGETS_UM, np.random.default_rng([seed, r]), lambda: stage.state)
+                run_collect(stage, (mv.u for mv in moves), log_path, quiet=True, mode="append",
+                            total=REFINE_ROUND_MOVES)
+    return model, data, log
+
+
 def train_on_rig(cfg: StageConfig, afm: AnalyticForwardModel, design: str, n: int, seed: int,
                  settings: ResidualModelSettings):
-    """What a user runs: ``collect`` (n ``design`` moves on the rig, stage seed + 10000) to a
-    log, read it back, ``train`` the residual model with ``settings``."""
-    with tempfile.TemporaryDirectory() as tmp:
-        log_path = Path(tmp) / "train.csv"
-        with SimulatedStage(cfg, seed=seed + 10_000) as stage:
-            run_collect(stage, training_moves(afm, design, n, seed), log_path, quiet=True)
-        data = residual_dataset(read_log(log_path, cfg.stage, min_rows=5), afm)
-    return train_residual_model(data, afm, settings)
+    """The model :func:`collect_and_train` gives for n ``design`` moves on the rig ``cfg`` (stage
+    seed + 10000)."""
+    meth = Method("design", design, settings, ControllerSettings())
+    return collect_and_train(lambda: SimulatedStage(cfg, seed=seed + 10_000), cfg, afm, meth, n, seed, settings)[0]
 
 
 def _told(meth: Method, sources: tuple[str, ...]) -> ResidualModelSettings:
@@ -258,7 +306,8 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
         for name in methods:
             meth = METHODS[name]
             t0 = time.perf_counter()
-            model = train_on_rig(cfg, afm, meth.design, n, seed, _told(meth, told))
+            model, _, _ = collect_and_train(lambda: SimulatedStage(cfg, seed=seed + 10_000), cfg, afm, meth, n, seed,
+                                            _told(meth, told))
             t_fit = time.perf_counter() - t0
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
             base = AFMController(afm)
@@ -358,18 +407,12 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
         for name in methods:
             meth = METHODS[name]
             t0 = time.perf_counter()
-            moves = training_moves(afm, meth.design, n, seed)
-            with tempfile.TemporaryDirectory() as tmp:
-                log_path = Path(tmp) / "train.csv"
-                with rig.stage(seed + 10_000) as stage:
-                    run_collect(stage, moves, log_path, quiet=True)
-                log = read_log(log_path, cfg.stage, min_rows=5)
-                data = residual_dataset(log, afm)
-            model = train_residual_model(data, afm, _told(meth, rig.true_sources()))
+            model, data, log = collect_and_train(lambda: rig.stage(seed + 10_000), cfg, afm, meth, n, seed,
+                                                 _told(meth, rig.true_sources()))
             t_fit = time.perf_counter() - t0
             model, _ = with_floor_check(model, data)  # kept in the JSON (microctl.models.floor_check)
             with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
-                audit = rig_audit.training_evidence(stage, moves, log.t, data, model)
+                audit = rig_audit.training_evidence(stage, log.u, log.t, data, model)
             audit["entry_nats"] = rig_audit.entry_evidence(
                 SELECTION_ALPHA, (model.info.get("noise_selection") or {}).get("candidates", 1))
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
