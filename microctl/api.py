@@ -47,7 +47,7 @@ from microctl.stage.config import StageConfig, load_stage_config
 from microctl.util.signals import interrupts_deferred, raise_if_interrupted
 
 __all__ = [
-    "Stage", "load_stage", "read_measurements", "collect", "train", "Controller", "ControllerSettings", "ControlResult",
+    "Stage", "load_stage", "read_measurements", "collect", "refine", "train", "Controller", "ControllerSettings", "ControlResult",
     "MoveRecord", "Operator", "Learner", "MOVE_LOG_COLUMNS",
 ]
 
@@ -205,6 +205,54 @@ def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str
         return run_collect(backend, moves, out, quiet=True)
     with stage.open_backend() as b:
         return run_collect(b, moves, out, quiet=True)
+
+
+def refine(stage: Stage, model: Any, n: int, log: str | Path, *, seed: int = 0,
+           target_range_um: tuple[float, float] | None = None, backend: Any | None = None) -> int:
+    """Run ``n`` moves chosen by a trained model where it is least sure of the optimum and append
+    them to ``log`` (``microctl collect --refine MODEL.npz --append``; :mod:`microctl.control.refine`).
+
+    Parameters
+    ----------
+    stage : Stage
+    model : FittedVHGPR or path
+        Trained for this stage (a model of another stage is refused).
+    n : int
+        Moves (>= 1), the returns to the zero state that start each episode included.
+    log : path
+        An existing measurement log of this stage (the model's training log); the moves are
+        appended to it. Train on it again afterwards.
+    seed : int
+        Seed of the episodes' targets.
+    target_range_um : (float, float), optional
+        Where the targets are drawn; default every reading the stage can reach.
+    backend : StageBackend, optional
+        Default: :meth:`Stage.open_backend` (opened and closed here).
+
+    Returns
+    -------
+    int
+        Moves written.
+    """
+    from microctl.backends.collect import run_collect
+    from microctl.control.refine import check_target_range, refinement_moves
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
+    if not Path(log).is_file():
+        raise ConfigError(f"{log}: no such measurement log; refine appends to the log the model was trained on")
+    eafm = EAFM(stage.afm, model)
+    targets = check_target_range(eafm, target_range_um, "target_range_um")
+    ctrl = OptimalController(eafm, ControllerSettings())
+
+    def run(b) -> int:
+        moves = refinement_moves(ctrl, eafm, int(n), targets, np.random.default_rng(seed), lambda: b.state)
+        return run_collect(b, (mv.u for mv in moves), log, quiet=True, mode="append", total=int(n))
+
+    if backend is not None:
+        return run(backend)
+    with stage.open_backend() as b:
+        return run(b)
 
 
 def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | None = None,

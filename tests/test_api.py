@@ -40,3 +40,20 @@ def test_api_md_examples_run(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.count("refused:") == 2
     assert len(re.findall(r"^\d: target \d+, predicted", out, re.M)) == 3
+
+
+def test_refine_refuses_a_missing_log_and_a_bad_count(tmp_path):
+    from microctl import api
+    from microctl.errors import ConfigError
+
+    stage = api.load_stage(Path(__file__).resolve().parents[1] / "configs/stage/sim_paper.yaml")
+    log = tmp_path / "t.csv"
+    api.collect(stage, 12, log, seed=1)
+    model = api.train(log, stage, restarts=1)
+    with pytest.raises(ConfigError, match="no such measurement log"):
+        api.refine(stage, model, 3, tmp_path / "none.csv")
+    with pytest.raises(ConfigError, match="number of moves >= 1"):
+        api.refine(stage, model, 0, log)
+    before = log.read_bytes()
+    assert api.refine(stage, model, 3, log, target_range_um=(0.0, 30.0)) == 3
+    assert log.read_bytes().startswith(before) and len(api.read_measurements(log, stage)) == 15
