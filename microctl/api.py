@@ -209,31 +209,11 @@ def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str
 
 def refine(stage: Stage, model: Any, n: int, log: str | Path, *, seed: int = 0,
            target_range_um: tuple[float, float] | None = None, backend: Any | None = None) -> int:
-    """Run ``n`` moves chosen by a trained model where it is least sure of the optimum and append
-    them to ``log`` (``microctl collect --refine MODEL.npz --append``; :mod:`microctl.control.refine`).
-
-    Parameters
-    ----------
-    stage : Stage
-    model : FittedVHGPR or path
-        Trained for this stage (a model of another stage is refused).
-    n : int
-        Moves (>= 1), the returns to the zero state that start each episode included.
-    log : path
-        An existing measurement log of this stage (the model's training log); the moves are
-        appended to it. Train on it again afterwards.
-    seed : int
-        Seed of the episodes' targets.
-    target_range_um : (float, float), optional
-        Where the targets are drawn; default every reading the stage can reach.
-    backend : StageBackend, optional
-        Default: :meth:`Stage.open_backend` (opened and closed here).
-
-    Returns
-    -------
-    int
-        Moves written.
-    """
+    """Append to ``log`` (the model's training log) ``n`` moves chosen by the trained ``model`` where
+    it is least sure of the optimum (``microctl collect --refine --append``, :mod:`microctl.control.refine`),
+    targets drawn with ``seed`` from ``target_range_um`` (default: every reading the stage can
+    reach), on ``backend`` (default :meth:`Stage.open_backend`); train on the log again afterwards.
+    Returns the moves written."""
     from microctl.backends.collect import run_collect
     from microctl.control.refine import check_target_range, refinement_moves
 
@@ -241,9 +221,8 @@ def refine(stage: Stage, model: Any, n: int, log: str | Path, *, seed: int = 0,
         raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
     if not Path(log).is_file():
         raise ConfigError(f"{log}: no such measurement log; refine appends to the log the model was trained on")
-    eafm = EAFM(stage.afm, model)
-    targets = check_target_range(eafm, target_range_um, "target_range_um")
-    ctrl = OptimalController(eafm, ControllerSettings())
+    eafm = EAFM(stage.afm, model)  # a model of another stage is refused
+    targets, ctrl = check_target_range(eafm, target_range_um, "target_range_um"), OptimalController(eafm)
 
     def run(b) -> int:
         moves = refinement_moves(ctrl, eafm, int(n), targets, np.random.default_rng(seed), lambda: b.state)
