@@ -180,7 +180,8 @@ class _Run:
 
 
 def _train(run: _Run) -> tuple[EAFM, dict]:
-    """Collect the training moves, fit the residual VHGPR (eq. 3), refine on-policy if asked."""
+    """Collect the training moves, fit the residual VHGPR (eq. 3), then refinement rounds if asked
+    (:mod:`microctl.control.refine`), each followed by a fit on everything."""
     cfg, afm, tr = run.cfg, run.afm, run.cfg.training
     t0 = time.perf_counter()
     rec = run.recorder("training", ("trial", "target_um", "controller"))
