@@ -215,18 +215,18 @@ def refine(stage: Stage, model: Any, n: int, log: str | Path, *, seed: int = 0,
     reach), on ``backend`` (default :meth:`Stage.open_backend`); train on the log again afterwards.
     Returns the moves written."""
     from microctl.backends.collect import run_collect
-    from microctl.control.refine import check_target_range, refinement_moves
+    from microctl.control.refine import check_target_range, refinement_commands
 
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
     if not Path(log).is_file():
         raise ConfigError(f"{log}: no such measurement log; refine appends to the log the model was trained on")
     eafm = EAFM(stage.afm, model)  # a model of another stage is refused
-    targets, ctrl = check_target_range(eafm, target_range_um, "target_range_um"), OptimalController(eafm)
+    targets = check_target_range(eafm, target_range_um, "target_range_um")
 
     def run(b) -> int:
-        moves = refinement_moves(ctrl, eafm, int(n), targets, np.random.default_rng(seed), lambda: b.state)
-        return run_collect(b, (mv.u for mv in moves), log, quiet=True, mode="append", total=int(n))
+        moves = refinement_commands(eafm, int(n), targets, seed, lambda: b.state)
+        return run_collect(b, moves, log, quiet=True, mode="append", total=int(n))
 
     if backend is not None:
         return run(backend)

@@ -95,7 +95,7 @@ from microctl.control.controller import (  # noqa: E402
 )
 from microctl.control.context import ByDirection  # noqa: E402
 from microctl.control.oracle import OracleController  # noqa: E402
-from microctl.control.refine import refinement_moves  # noqa: E402
+from microctl.control.refine import refinement_commands  # noqa: E402
 from microctl.measurement.design import training_moves  # noqa: E402
 from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
@@ -271,11 +271,9 @@ def collect_and_train(open_stage, cfg: StageConfig, afm: AnalyticForwardModel, m
             data = residual_dataset(log, afm)
             model = train_residual_model(data, afm, settings)
             if r < rounds:
-                eafm = EAFM(afm, model)
-                moves = refinement_moves(OptimalController(eafm, meth.controller), eafm, REFINE_ROUND_MOVES,
-                                         REFINE_TARGETS_UM, np.random.default_rng([seed, r]), lambda: stage.state)
-                run_collect(stage, (mv.u for mv in moves), log_path, quiet=True, mode="append",
-                            total=REFINE_ROUND_MOVES)
+                moves = refinement_commands(EAFM(afm, model), REFINE_ROUND_MOVES, REFINE_TARGETS_UM, [seed, r],
+                                            lambda: stage.state, meth.controller)
+                run_collect(stage, moves, log_path, quiet=True, mode="append", total=REFINE_ROUND_MOVES)
     return model, data, log
 
 

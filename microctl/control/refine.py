@@ -26,12 +26,12 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from microctl.control.controller import OptimalController
+from microctl.control.controller import ControllerSettings, OptimalController
 from microctl.errors import ConfigError, SolveError
 from microctl.models.eafm import EAFM
 
 __all__ = ["RefineMove", "REFINE_STRATEGIES", "EXPLORE_RATIO", "EPISODE_TARGETS", "explore", "refinement_moves",
-           "check_target_range"]
+           "refinement_commands", "check_target_range"]
 
 #: ``uncertainty``: the least certain candidate optimum (default); ``on_policy``: the controller's choice.
 REFINE_STRATEGIES = ("uncertainty", "on_policy")
@@ -150,3 +150,14 @@ def refinement_moves(ctrl: OptimalController, eafm: EAFM, n_moves: int, target_r
             yield RefineMove(u, float(target), label)
             prev_u = u
             done += 1
+
+
+def refinement_commands(eafm: EAFM, n_moves: int, target_range_um: tuple[float, float], seed,
+                        state: Callable[[], np.ndarray], settings: ControllerSettings | None = None
+                        ) -> Iterator[np.ndarray]:
+    """The commands u, shape (n_p,), of :func:`refinement_moves` with ``eafm``'s optimal controller
+    (``settings``, default the package's) and the targets drawn by ``numpy.random.default_rng(seed)``:
+    what an executor (``microctl collect --refine``, ``api.refine``, ``scripts/bench_rigs.py``)
+    hands to :func:`microctl.backends.collect.run_collect`."""
+    ctrl = OptimalController(eafm, settings)
+    return (mv.u for mv in refinement_moves(ctrl, eafm, n_moves, target_range_um, np.random.default_rng(seed), state))

@@ -28,7 +28,7 @@ import pytest
 import independent_stage as ind
 from microctl.backends.collect import run_collect
 from microctl.control.controller import ControllerSettings, OptimalController
-from microctl.control.refine import refinement_moves
+from microctl.control.refine import refinement_commands
 from microctl.measurement.design import training_moves
 from microctl.measurement.log import Measurement, read_log
 from microctl.models.afm import AnalyticForwardModel
@@ -73,7 +73,8 @@ class HingeStage:
 
     def move(self, u: np.ndarray) -> Measurement:
         q = self.truth.geometry.commands(u)[0]
-        pose, turn = self._pose(q), self._pose(q)[1:] - self._pose(self.q)[1:]
+        pose = self._pose(q)
+        turn = pose[1:] - self._pose(self.q)[1:]
         slipped = pose + np.r_[0.0, SLIP * np.abs(turn) * self.rng.standard_normal(2)]
         self.t = self._read(slipped) - self.zero + GAUGE_UM * float(self.rng.standard_normal())
         self.q, self.time_s = q, self.time_s + 1.0
@@ -93,9 +94,8 @@ def _trained(seed: int, tmp: Path):
     stage = HingeStage(cfg.stage, seed=seed)
     run_collect(stage, training_moves(afm, "covering", DESIGNED, seed=seed), log, quiet=True)
     eafm = EAFM(afm, train_residual_model(residual_dataset(read_log(log, cfg.stage), afm), afm, ResidualModelSettings()))
-    moves = refinement_moves(OptimalController(eafm, ControllerSettings()), eafm, REFINED, (0.0, 30.0),
-                             np.random.default_rng(seed), lambda: stage.state)
-    run_collect(stage, (mv.u for mv in moves), log, quiet=True, mode="append", total=REFINED)
+    moves = refinement_commands(eafm, REFINED, (0.0, 30.0), seed, lambda: stage.state)
+    run_collect(stage, moves, log, quiet=True, mode="append", total=REFINED)
     model = train_residual_model(residual_dataset(read_log(log, cfg.stage), afm), afm, ResidualModelSettings())
     return stage, afm, EAFM(afm, model)
 

@@ -7,13 +7,10 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from microctl.backends import make_backend
 from microctl.backends.collect import run_collect
 from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
-from microctl.control.controller import ControllerSettings, OptimalController
-from microctl.control.refine import check_target_range, refinement_moves
+from microctl.control.refine import check_target_range, refinement_commands
 from microctl.errors import ConfigError
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, training_moves
 from microctl.models.afm import AnalyticForwardModel
@@ -77,11 +74,9 @@ def _refinement(args: argparse.Namespace, afm: AnalyticForwardModel):
                           "a trained model chooses)")
     eafm = EAFM(afm, args.refine)  # refuses a model trained for another stage
     targets = check_target_range(eafm, args.target_range, "--target-range")
-    ctrl = OptimalController(eafm, ControllerSettings())
-    rng = np.random.default_rng(args.seed)
 
     def make_moves(backend):
-        return (mv.u for mv in refinement_moves(ctrl, eafm, args.n, targets, rng, lambda: backend.state))
+        return refinement_commands(eafm, args.n, targets, args.seed, lambda: backend.state)
 
     return make_moves, f" chosen by {args.refine} (targets {targets[0]:g} to {targets[1]:g} µm)"
 
