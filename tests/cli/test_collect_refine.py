@@ -90,3 +90,13 @@ def test_a_model_of_another_stage_is_refused(loop, tmp_path, capsys):
     assert main(["collect", "--config", str(other), "--refine", str(loop[0] / "m.npz"), "-n", "3", "-o", str(out)]) == 2
     assert "m.npz" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["0", "0,1,2", "a,b"])
+def test_a_malformed_target_range_is_a_usage_error(tmp_path, capsys, value):
+    out = tmp_path / "x.csv"
+    with pytest.raises(SystemExit, match="2"):
+        main(["collect", "--config", str(CONFIG), "-n", "3", "-o", str(out), "--target-range", value])
+    err = capsys.readouterr().err
+    assert f"argument --target-range: expected LO,HI (two numbers in µm, e.g. 0,30), got '{value}'" in err
+    assert "Traceback" not in err and not out.exists()
