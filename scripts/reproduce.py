@@ -19,11 +19,12 @@ Sections (``--only`` picks some; default: all, in this order):
     the paper-scale rig, its Table II and, per seed offset, whether its AFM errors keep the
     paper's size and grow with the target (``--jobs`` seed sets at a time).
 ``bench_rigs``
-    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,credible
+    ``python scripts/bench_rigs.py --family all --rigs 12 --sizes 125,200 --methods default,credible,refined
     --seed-sets 10 --jobs 2`` (the main job over 10 seed sets, and 12 rigs of every noise family
-    of scripts/rig_families.py at 125 and 200 training moves, with the default controller and
-    with the previous release's least-motion rule; ``docs/generated/bench_rigs.md``), then the held-out rigs
-    ``--seed 100`` with the same two methods (:data:`BENCH_RIGS_HELD_OUT_ARGS`).
+    of scripts/rig_families.py at 125 and 200 training moves, with the default controller, with
+    the previous release's least-motion rule, and with the same number of moves of which 40 % are
+    refinement moves (``microctl collect --refine``); ``docs/generated/bench_rigs.md``), then the
+    held-out rigs ``--seed 100`` with the same three methods (:data:`BENCH_RIGS_HELD_OUT_ARGS`).
     The longest (the page records its wall time); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side, ``eq4`` for the
     controller without the least-motion rule.
@@ -61,12 +62,12 @@ PAPER_SCALE = "configs/experiments/paper_scale.yaml"
 #: Seed offsets the paper-scale rig is also measured on (besides the shipped seeds, offset 0).
 PAPER_SCALE_OFFSETS = tuple(10_000 * k for k in range(1, 10))
 #: The bench_rigs run the docs quote (``--jobs`` is taken from reproduce.py's own option).
-BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods", "default,credible",
-                   "--seed-sets", "10")
+BENCH_RIGS_ARGS = ("--family", "all", "--rigs", "12", "--sizes", "125,200", "--methods",
+                   "default,credible,refined", "--seed-sets", "10")
 #: The held-out rigs of the same page: seeds 100..111 of every family, which no method change was
 #: measured on before they were added (every earlier choice was judged on seeds 0..11 above).
 BENCH_RIGS_HELD_OUT_ARGS = ("--family", "all", "--rigs", "12", "--seed", "100", "--sizes", "125,200",
-                            "--methods", "default,credible")
+                            "--methods", "default,credible,refined")
 #: Captured-output benchmarks: section -> (script, arguments).
 CAPTURED = {
     "bench_solve": ("scripts/bench_solve.py", ("--sizes", "125,500,2000")),
@@ -353,7 +354,7 @@ def section_bench_rigs(args, docs: Path, runs: Path) -> Path:
     L = _head("bench_rigs", "Seed sets and random rigs: measured results", shown[0]) + [bodies[0]]
     L += ["## Held-out rigs", "",
           f"Command: `{shown[1]}`.", "",
-          "Rigs 100..111 of every family, with the default method. Every method change up to their "
+          "Rigs 100..111 of every family, with the same methods. Every method change up to their "
           "addition was chosen on the rigs above (seeds 0..11); these were not looked at before, so "
           "the difference between the two tables is what that choosing bought on rigs the method "
           "was not shaped on. The bars are the same.", "", held_out]
