@@ -16,7 +16,11 @@ variance). The model is then trained again on everything.
 
 The moves are a generator: each is computed from the stage's state after the previous one was
 executed, so whoever executes them (``microctl collect --refine``, the experiments' training,
-``scripts/bench_rigs.py``) logs them as it logs designed moves.
+``scripts/bench_rigs.py``) logs them as it logs designed moves. For a model that reads the move's
+context (a reversal source, :mod:`microctl.control.context`) each move is planned with each
+actuator's last direction of motion, tracked from the commands the generator has yielded (the
+stage's history before the first is unknown: one move from the zero state to where it stands,
+:func:`microctl.models.direction.at_commands`).
 """
 
 from __future__ import annotations
@@ -26,8 +30,10 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from microctl.control.context import ByDirection
 from microctl.control.controller import ControllerSettings, OptimalController
 from microctl.errors import ConfigError, SolveError
+from microctl.models import direction as directions
 from microctl.models.eafm import EAFM
 
 __all__ = ["RefineMove", "REFINE_STRATEGIES", "EXPLORE_RATIO", "EPISODE_TARGETS", "explore", "refinement_moves",
@@ -100,17 +106,16 @@ def check_target_range(eafm: EAFM, target_range_um, where: str) -> tuple[float, 
     return lo, hi
 
 
-def refinement_moves(ctrl: OptimalController, eafm: EAFM, n_moves: int, target_range_um: tuple[float, float],
+def refinement_moves(controllers: ByDirection, n_moves: int, target_range_um: tuple[float, float],
                      rng: np.random.Generator, state: Callable[[], np.ndarray], *,
                      episode_targets: int = EPISODE_TARGETS, strategy: str = "uncertainty") -> Iterator[RefineMove]:
     """``n_moves`` refinement moves (module docstring), each computed when it is asked for.
 
     Parameters
     ----------
-    ctrl : OptimalController
-        The controller of ``eafm``.
-    eafm : EAFM
-        The trained model.
+    controllers : ByDirection
+        The trained model's controller for each direction of the actuators' last motion
+        (``controllers.eafm`` is the model).
     n_moves : int
         Moves to yield, the returns to the zero state included.
     target_range_um : (float, float)
@@ -118,8 +123,8 @@ def refinement_moves(ctrl: OptimalController, eafm: EAFM, n_moves: int, target_r
     rng : numpy.random.Generator
         Draws the targets.
     state : callable
-        ``state() -> s``, shape (n_s,): the stage's state now (after the moves yielded so far
-        were executed).
+        ``state() -> s``, shape (n_s,) = [t_prev, q_prev (n_q)]: the stage's state now (after
+        the moves yielded so far were executed).
     episode_targets : int
     strategy : {"uncertainty", "on_policy"}
 
@@ -130,24 +135,31 @@ def refinement_moves(ctrl: OptimalController, eafm: EAFM, n_moves: int, target_r
     """
     if strategy not in REFINE_STRATEGIES:
         raise ConfigError(f"refinement strategy: expected one of {', '.join(REFINE_STRATEGIES)}, got {strategy!r}")
+    afm = controllers.eafm.afm
     lo, hi = target_range_um
-    done = 0
+    done, last = 0, None
     while done < n_moves:
-        yield RefineMove(np.zeros(eafm.afm.n_p), 0.0, "zero")
+        zero = np.zeros(afm.n_p)
+        q_before = np.asarray(state(), dtype=float)[1:]
+        last = directions.at_commands(q_before) if last is None else last
+        yield RefineMove(zero, 0.0, "zero")
+        last = directions.after_move(last, q_before, afm.q_of(zero))
         done += 1
         prev_u = None
         for target in np.sort(rng.uniform(lo, hi, episode_targets)):
             if done >= n_moves:
                 break
-            s = state()
+            s = np.asarray(state(), dtype=float)
+            ctrl = controllers(last)
             try:
                 res = ctrl.solve(float(target), s, u_init=prev_u)
             except SolveError:
                 continue
             u, label = res.u, "eafm"
             if strategy == "uncertainty":
-                u, label = explore(ctrl, eafm, float(target), s, res.u)
+                u, label = explore(ctrl, controllers.eafm.with_direction(last), float(target), s, res.u)
             yield RefineMove(u, float(target), label)
+            last = directions.after_move(last, s[1:], afm.q_of(u))
             prev_u = u
             done += 1
 
@@ -159,5 +171,5 @@ def refinement_commands(eafm: EAFM, n_moves: int, target_range_um: tuple[float, 
     (``settings``, default the package's) and the targets drawn by ``numpy.random.default_rng(seed)``:
     what an executor (``microctl collect --refine``, ``api.refine``, ``scripts/bench_rigs.py``)
     hands to :func:`microctl.backends.collect.run_collect`."""
-    ctrl = OptimalController(eafm, settings)
-    return (mv.u for mv in refinement_moves(ctrl, eafm, n_moves, target_range_um, np.random.default_rng(seed), state))
+    controllers = ByDirection(eafm, lambda e: OptimalController(e, settings))
+    return (mv.u for mv in refinement_moves(controllers, n_moves, target_range_um, np.random.default_rng(seed), state))

@@ -197,10 +197,10 @@ def _train(run: _Run) -> tuple[EAFM, dict]:
         targets = check_target_range(eafm, tr.refine_target_range_um, "training.refine_target_range_um")
         rng = np.random.default_rng(cfg.seeds.refine_targets)
         for r in range(1, tr.refine_rounds + 1):
-            ctrl = OptimalController(eafm, cfg.controller)
+            controllers = ByDirection(eafm, lambda e: OptimalController(e, cfg.controller))
             with run.backend(cfg.seeds.training_stage + r) as b, \
                     Progress(tr.refine_moves, f"refinement round {r}", quiet=run.quiet) as pr:
-                for mv in refinement_moves(ctrl, eafm, tr.refine_moves, targets, rng, lambda: b.state,
+                for mv in refinement_moves(controllers, tr.refine_moves, targets, rng, lambda: b.state,
                                            episode_targets=tr.refine_episode_targets, strategy=tr.refine_strategy):
                     rec.move(b, mv.u, trial=r, target_um=mv.target_um, controller=mv.label)
                     info["explored_moves"] += mv.label == "explore"

@@ -14,6 +14,7 @@ import pytest
 
 from microctl.backends.collect import execute_moves
 from microctl.backends.simulated import SimulatedStage
+from microctl.control.context import ByDirection
 from microctl.control.controller import ControllerSettings, OptimalController
 from microctl.control.refine import EXPLORE_RATIO, check_target_range, explore, refinement_moves
 from microctl.errors import ConfigError, SolveError
@@ -46,8 +47,8 @@ def _run(cfg, eafm, ctrl, n, strategy="uncertainty", seed=0):
     """Execute n refinement moves on a fresh stage; the moves and the state before each."""
     out = []
     with SimulatedStage(cfg, seed=11) as st:
-        for mv in refinement_moves(ctrl, eafm, n, TARGETS_UM, np.random.default_rng(seed), lambda: st.state,
-                                   strategy=strategy):
+        for mv in refinement_moves(ByDirection(eafm, lambda e: ctrl), n, TARGETS_UM, np.random.default_rng(seed),
+                                   lambda: st.state, strategy=strategy):
             out.append((mv, st.state.copy()))
             st.move(mv.u)
     return out
@@ -106,8 +107,8 @@ def test_a_target_that_cannot_be_solved_is_skipped(trained):
             Failing.calls += 1
             raise SolveError("no solution")
 
-    moves = list(refinement_moves(Failing(), eafm, 3, TARGETS_UM, np.random.default_rng(0), lambda: np.zeros(afm.n_s),
-                                  strategy="on_policy"))
+    moves = list(refinement_moves(ByDirection(eafm, lambda e: Failing()), 3, TARGETS_UM, np.random.default_rng(0),
+                                  lambda: np.zeros(afm.n_s), strategy="on_policy"))
     assert [mv.label for mv in moves] == ["zero"] * 3  # each episode's four targets fail: only the returns
     assert Failing.calls == 8
 
@@ -122,7 +123,8 @@ def test_target_range_and_strategy_are_checked(trained):
     with pytest.raises(ConfigError, match="LO < HI"):
         check_target_range(eafm, (5, 5), "--target-range")
     with pytest.raises(ConfigError, match="uncertainty, on_policy"):
-        next(refinement_moves(ctrl, eafm, 2, TARGETS_UM, np.random.default_rng(0), lambda: None, strategy="greedy"))
+        next(refinement_moves(ByDirection(eafm, lambda e: ctrl), 2, TARGETS_UM, np.random.default_rng(0), lambda: None,
+                              strategy="greedy"))
 
 
 def test_explore_keeps_the_controllers_choice_when_it_is_the_least_certain(trained, monkeypatch):

@@ -242,6 +242,48 @@ def test_the_runner_replans_a_sequence_from_the_directions_of_the_commands_sent(
     assert np.any(np.array(hand) < 0)  # the list turned some actuator round
 
 
+def test_refinement_plans_each_move_with_the_directions_of_the_commands_sent(afm, reversal_model):
+    """Refinement (microctl.control.refine) on a model that reads the directions: every solve and
+    every exploration of candidates is made with each actuator's last direction before that move,
+    recomputed here from the commands the stage executed by the rule written in this file; the
+    return to the zero state that starts the second episode turns actuators round, so the
+    directions change along the moves."""
+    from microctl.backends.simulated import SimulatedStage
+    from microctl.control.controller import OptimalController
+    from microctl.control.refine import refinement_moves
+
+    class Spy:  # records the direction of the model each planning call was made with
+        def __init__(self, eafm):
+            self.inner, self.eafm = OptimalController(eafm), eafm
+
+        def solve(self, *a, **k):
+            seen.append(("solve", self.eafm.direction.copy()))
+            return self.inner.solve(*a, **k)
+
+        def candidates(self, *a, **k):
+            seen.append(("candidates", self.eafm.direction.copy()))
+            return self.inner.candidates(*a, **k)
+
+    seen, Q = [], [np.zeros(afm.n_q)]
+    cfg = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
+    with SimulatedStage(cfg, seed=3) as st:
+        for mv in refinement_moves(ByDirection(EAFM(afm, reversal_model), Spy), 10, (2.0, 30.0),
+                                   np.random.default_rng(4), lambda: st.state):
+            st.move(mv.u)
+            Q.append(np.asarray(st.state[1:], dtype=float).copy())
+    last, hand = np.ones(afm.n_q), []
+    for k in range(1, len(Q)):
+        hand.append(last.copy())
+        dq = Q[k] - Q[k - 1]
+        last = np.where(np.abs(dq) > 1e-6, np.sign(dq), last)
+    planned = [k for k in range(len(Q) - 1) if np.any(Q[k + 1] != 0)]  # the moves that are not returns to zero
+    assert len(planned) == 8
+    solves = [d for what, d in seen if what == "solve"]
+    np.testing.assert_array_equal(np.array(solves), np.array([hand[k] for k in planned]))
+    assert all(any(np.array_equal(d, hand[k]) for k in planned) for what, d in seen if what == "candidates")
+    assert np.any(np.array([hand[k] for k in planned]) < 0)  # some move was planned after a reversal
+
+
 def test_a_malformed_direction_is_a_config_error_naming_what_is_valid(afm, reversal_model):
     """A direction of the wrong length or with a value other than +1/-1 is refused with one line
     that says what is valid; ConfigError is a ValueError."""
