@@ -201,6 +201,18 @@ def test_the_api_controller_solves_with_the_direction_it_is_given(afm, reversal_
     assert res["up"].q[REV_ACT] - q_prev[REV_ACT] >= -0.1 and res["down"].q[REV_ACT] - q_prev[REV_ACT] <= 0.1
 
 
+def _directions_by_hand(Q: np.ndarray) -> list[np.ndarray]:
+    """Each actuator's last direction before every move of the commands Q (rows: the zero state,
+    then the commands in order), by this file's rule: the sign of the step, a step of at most
+    1e-6 µm holds the direction, the zero state counts as up."""
+    last, hand = np.ones(Q.shape[1]), []
+    for k in range(1, len(Q)):
+        hand.append(last.copy())
+        dq = Q[k] - Q[k - 1]
+        last = np.where(np.abs(dq) > 1e-6, np.sign(dq), last)
+    return hand
+
+
 def test_the_runner_replans_a_sequence_from_the_directions_of_the_commands_sent(afm, reversal_model, tmp_path,
                                                                                  monkeypatch):
     """The experiments' re-planning sequence controller (``eafm_sequence``), on a model that reads
@@ -232,11 +244,7 @@ def test_the_runner_replans_a_sequence_from_the_directions_of_the_commands_sent(
     log = read_log(tmp_path / runner.LOG_NAMES["incremental"], cfg.stage_config.stage)
     rows = [k for k, c in enumerate(log.extra["controller"]) if c == "eafm_sequence"]
     Q = np.asarray(log.q)[rows]  # the zero state, then the three targets' commands
-    last, hand = np.ones(afm.n_q), []
-    for k in range(1, len(Q)):
-        hand.append(last.copy())
-        dq = Q[k] - Q[k - 1]
-        last = np.where(np.abs(dq) > 1e-6, np.sign(dq), last)
+    hand = _directions_by_hand(Q)
     assert len(seen) == 3
     np.testing.assert_array_equal(np.array(seen), np.array(hand))
     assert np.any(np.array(hand) < 0)  # the list turned some actuator round
@@ -271,11 +279,7 @@ def test_refinement_plans_each_move_with_the_directions_of_the_commands_sent(afm
                                    np.random.default_rng(4), lambda: st.state):
             st.move(mv.u)
             Q.append(np.asarray(st.state[1:], dtype=float).copy())
-    last, hand = np.ones(afm.n_q), []
-    for k in range(1, len(Q)):
-        hand.append(last.copy())
-        dq = Q[k] - Q[k - 1]
-        last = np.where(np.abs(dq) > 1e-6, np.sign(dq), last)
+    hand = _directions_by_hand(np.array(Q))
     planned = [k for k in range(len(Q) - 1) if np.any(Q[k + 1] != 0)]  # the moves that are not returns to zero
     assert len(planned) == 8
     solves = [d for what, d in seen if what == "solve"]
