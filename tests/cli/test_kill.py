@@ -2,10 +2,10 @@
 
 Every command that writes over an existing output (``gp fit``, ``gp predict``, ``train``,
 ``collect --force``, ``diagnose``) is started as a process and sent SIGKILL or SIGINT at a
-seeded random time (from process start to past its end), 56 trials in all. Afterwards every
-output is either byte-for-byte the old file or a complete new one that reads, never torn or
-missing; a SIGINT run ends with exit 130 and the one line "microctl: interrupted" (or 0 when it
-finished first), never a traceback.
+seeded random time (from the moment its entry point runs to past its end, :func:`_start`), 56
+trials in all. Afterwards every output is either byte-for-byte the old file or a complete new
+one that reads, never torn or missing; a SIGINT run ends with exit 130 and the one line
+"microctl: interrupted" (or 0 when it finished first), never a traceback.
 """
 
 from __future__ import annotations
@@ -24,6 +24,28 @@ ROOT = Path(__file__).resolve().parents[2]
 TABLE1 = ROOT / "configs/stage/table1.yaml"
 MCYCLE = ROOT / "tests/data/mcycle.csv"
 TRIALS_PER_COMMAND = 14  # x 4 commands = 56 trials (plus 6 of diagnose and 6 of experiment)
+
+
+#: The command line's entry point as the ``microctl`` console script runs it (``from microctl.cli
+#: import main``), with a line on stderr once it is reached. A trial's delay counts from that line:
+#: before it the interpreter is still starting (site, the import of microctl.cli), where a SIGINT
+#: is Python's own KeyboardInterrupt traceback before the package has any say. On a loaded machine
+#: that start-up can outlast the shortest delays drawn here: with both cores busy, SIGINTs sent
+#: 0.06 and 0.09 s after the start ended `python -m microctl collect` with exit 1 and a traceback
+#: in site.py.
+_ENTRY = ("import sys\nfrom microctl.cli import main\nsys.argv = ['microctl', *sys.argv[1:]]\n"
+          "sys.stderr.write('entry\\n')\nsys.stderr.flush()\nsys.exit(main())\n")
+
+
+def _start(argv, cwd) -> subprocess.Popen:
+    """The command line with ``argv`` as a process, returned once its entry point runs."""
+    proc = subprocess.Popen([sys.executable, "-c", _ENTRY, *argv], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    line = proc.stderr.readline()
+    if line != "entry\n":
+        proc.kill()
+        pytest.fail(f"microctl {' '.join(argv)} did not reach its entry point: {line}{proc.communicate()[1]}")
+    return proc
 
 
 def _run(argv, cwd):
@@ -105,9 +127,7 @@ def test_kill_experiment_never_leaves_a_torn_file(work):
         sig = signal.SIGKILL if trial % 2 == 0 else signal.SIGINT
         old = {n: (work / "exp" / n).read_bytes() for n in checks if (work / "exp" / n).is_file()}
         delay = float(rng.uniform(0.3, 8.0))
-        proc = subprocess.Popen([sys.executable, "-m", "microctl", "experiment", "quick", "--out", "exp", "--quiet",
-                                 "--seed-offset", str(trial + 1)], cwd=work, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+        proc = _start(["experiment", "quick", "--out", "exp", "--quiet", "--seed-offset", str(trial + 1)], work)
         time.sleep(delay)
         if proc.poll() is None:
             os.kill(proc.pid, sig)
@@ -134,8 +154,7 @@ def test_kill_leaves_old_or_new_file(work, name):
         old = {rel: (work / rel).read_bytes() for rel in outputs}
         sig = signal.SIGKILL if trial % 2 == 0 else signal.SIGINT
         delay = float(rng.uniform(0.05, span))
-        proc = subprocess.Popen([sys.executable, "-m", "microctl", *argv], cwd=work, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+        proc = _start(argv, work)
         time.sleep(delay)
         if proc.poll() is None:
             os.kill(proc.pid, sig)
