@@ -861,7 +861,10 @@ def main_families(args) -> int:
             futs = [ex.submit(run_family_rig, f, s, sizes, methods) for f, s in jobs]
             for fu in futs:
                 results.append(fu.result())
-                print(f"  {results[-1]['family']} rig {results[-1]['seed']} done", file=sys.stderr)
+                print(f"  {results[-1]['family']} rig {results[-1]['seed']} done ({time.perf_counter() - t0:.0f} s)",
+                      file=sys.stderr)
+                if args.json:  # partial results survive an interrupted run
+                    Path(args.json).write_text(json.dumps({"rigs": results}, indent=1, default=float))
     else:
         for f, s in jobs:
             results.append(run_family_rig(f, s, sizes, methods))

@@ -33,7 +33,10 @@ Sections (``--only`` picks some; default: all, in this order):
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
 
 Usage: ``python scripts/reproduce.py [--only main_job,paper_scale] [--jobs 2] [--runs runs]
-[--docs docs/generated]``. Runs are written under ``--runs`` (git-ignored ``runs/``).
+[--docs docs/generated] [--resume]``. Runs are written under ``--runs`` (git-ignored ``runs/``).
+The bench page has two long parts (the page gives their wall times); each part's tables are
+kept in ``--runs`` as soon as it ends, and ``--resume`` reuses a part this commit already
+measured in the same environment (for example after the held-out part was interrupted).
 """
 
 from __future__ import annotations
@@ -46,7 +49,6 @@ import platform
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -94,24 +96,37 @@ OFFSET_SUMMARY = ("seed offset", "AFM MSSE grows with the target", "AFM VSSE gro
 # --------------------------------------------------------------------------- helpers
 
 
-def provenance() -> str:
-    """When, from which commit and on which machine: one line for every generated file."""
+def _commit() -> str:
+    """The checked-out commit, ``"<sha> with uncommitted changes"`` when the tree differs from it
+    (outside docs/generated, which this script writes), or ``"unknown (not a git checkout)"``."""
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
                                 ":(exclude)docs/generated"], cwd=ROOT, capture_output=True, text=True,
                                check=True).stdout.strip()  # what this script writes does not count
-        commit += " with uncommitted changes" if dirty else ""
+        return commit + (" with uncommitted changes" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        commit = "unknown (not a git checkout)"
-    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        return "unknown (not a git checkout)"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def _environment() -> str:
+    """The machine and the numerical environment a number was measured in (without the load)."""
+    return (f"{platform.machine()}{_cpu_model()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
+            f"{_library_versions()}")
+
+
+def provenance() -> str:
+    """When, from which commit and on which machine: one line for every generated file."""
     try:  # timings depend on what else the machine was doing
         load = " (load average " + ", ".join(f"{x:.1f}" for x in os.getloadavg()) + " over 1, 5, 15 min at the end)"
     except OSError:
         load = ""
-    return (f"Measured {now}, commit {commit}; {platform.machine()}{_cpu_model()}, {os.cpu_count()} CPUs{load}, "
-            f"Python {platform.python_version()}, {_library_versions()}.")
+    return f"Measured {_now()}, commit {_commit()}; {_environment()}{load}."
 
 
 def _cpu_model() -> str:
@@ -369,20 +384,41 @@ def section_paper_scale(args, docs: Path, runs: Path) -> Path:
 # --------------------------------------------------------------------------- benchmarks
 
 
+def _bench_part(name: str, extra: tuple[str, ...], args, runs: Path) -> tuple[str, str]:
+    """One part of the bench page: (its Markdown, the command shown).
+
+    The part's Markdown is kept in ``--runs`` (``<name>.md``) beside a stamp (``<name>.stamp``:
+    the commit, the environment and the command), so a part already measured survives a later
+    part's failure. With ``--resume`` a part whose stamp matches this checkout (clean tree, same
+    commit, environment and command) is read back instead of rerun; the stamp is removed before a
+    run starts and written only after it ends, so an interrupted run is never reused.
+    """
+    md, stamp = runs / f"{name}.md", runs / f"{name}.stamp"
+    cmd = [sys.executable, "scripts/bench_rigs.py", *extra, "--jobs", str(args.jobs),
+           "--json", str(runs / f"{name}.json"), "--markdown", str(md)]
+    shown = _shown(cmd[:-4])  # without the --json/--markdown files
+    commit = _commit()
+    key = {"commit": commit, "environment": _environment(), "command": shown}
+    if args.resume and md.is_file() and stamp.is_file() and " " not in commit:  # a clean checkout only
+        had = json.loads(stamp.read_text())
+        if {k: had.get(k) for k in key} == key:
+            print(f"reproduce: {name}: reusing the part measured {had['measured']} ({md})", file=sys.stderr, flush=True)
+            return md.read_text() + f"\nThis part measured {had['measured']}.\n", shown
+    stamp.unlink(missing_ok=True)
+    start = _now()
+    _run(cmd, log=runs / f"{name}.log")
+    measured = f"{start} to {_now()}"
+    stamp.write_text(json.dumps({**key, "measured": measured}, indent=1))
+    return md.read_text() + f"\nThis part measured {measured}.\n", shown
+
+
 def section_bench_rigs(args, docs: Path, runs: Path) -> Path:
-    bodies, shown = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name, extra in (("bench_rigs", BENCH_RIGS_ARGS), ("bench_rigs_held_out", BENCH_RIGS_HELD_OUT_ARGS)):
-            md = Path(tmp) / f"{name}.md"
-            cmd = [sys.executable, "scripts/bench_rigs.py", *extra, "--jobs", str(args.jobs),
-                   "--json", str(runs / f"{name}.json"), "--markdown", str(md)]
-            _run(cmd, log=runs / f"{name}.log")
-            bodies.append(md.read_text())
-            shown.append(_shown(cmd[:-4]))  # without the temporary --json/--markdown files
-    held_out = bodies[1].replace("<!-- table: families -->", "<!-- table: families_held_out -->")
-    L = _head("bench_rigs", "Seed sets and random rigs: measured results", shown[0]) + [bodies[0]]
+    dev, shown = _bench_part("bench_rigs", BENCH_RIGS_ARGS, args, runs)
+    held_out, shown_held_out = _bench_part("bench_rigs_held_out", BENCH_RIGS_HELD_OUT_ARGS, args, runs)
+    held_out = held_out.replace("<!-- table: families -->", "<!-- table: families_held_out -->")
+    L = _head("bench_rigs", "Seed sets and random rigs: measured results", shown) + [dev]
     L += ["## Held-out rigs", "",
-          f"Command: `{shown[1]}`.", "",
+          f"Command: `{shown_held_out}`.", "",
           "Rigs 100..111 of every family, with the same methods. Every method change up to their "
           "addition was chosen on the rigs above (seeds 0..11); these were not looked at before, so "
           "the difference between the two tables is what that choosing bought on rigs the method "
@@ -411,6 +447,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="worker processes for bench_rigs, and paper_scale seed sets run at a time (default 2)")
     ap.add_argument("--runs", default=str(ROOT / "runs"), help="where the runs are written (default runs/)")
     ap.add_argument("--docs", default=str(ROOT / "docs" / "generated"), help="where the Markdown goes")
+    ap.add_argument("--resume", action="store_true",
+                    help="bench_rigs: reuse a part (dev or held-out rigs) already measured into --runs by this "
+                         "commit in this environment, instead of rerunning it")
     args = ap.parse_args(argv)
     chosen = [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = [s for s in chosen if s not in SECTIONS]
