@@ -23,8 +23,9 @@ Sections (``--only`` picks some; default: all, in this order):
     --seed-sets 10 --jobs 2`` (the main job over 10 seed sets, and 12 rigs of every noise family
     of scripts/rig_families.py at 125 and 200 training moves, with the default controller, with
     the previous release's least-motion rule, and with the same number of moves of which 40 % are
-    refinement moves (``microctl collect --refine``); ``docs/generated/bench_rigs.md``), then the
-    held-out rigs ``--seed 100`` with the same three methods (:data:`BENCH_RIGS_HELD_OUT_ARGS`).
+    refinement moves (``microctl collect --refine``); ``docs/generated/bench_rigs.md``, part
+    ``dev``), then the held-out rigs ``--seed 100`` with the same three methods
+    (:data:`BENCH_RIGS_HELD_OUT_ARGS`, part ``held_out``). ``--part`` remakes one part.
     The longest (the page records its wall time); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side, ``eq4`` for the
     controller without the least-motion rule.
@@ -33,10 +34,10 @@ Sections (``--only`` picks some; default: all, in this order):
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
 
 Usage: ``python scripts/reproduce.py [--only main_job,paper_scale] [--jobs 2] [--runs runs]
-[--docs docs/generated] [--resume]``. Runs are written under ``--runs`` (git-ignored ``runs/``).
-The bench page has two long parts (the page gives their wall times); each part's tables are
-kept in ``--runs`` as soon as it ends, and ``--resume`` reuses a part this commit already
-measured in the same environment (for example after the held-out part was interrupted).
+[--docs docs/generated] [--part dev|held_out]``. Runs are written under ``--runs`` (git-ignored
+``runs/``). The bench page has two long parts (the page gives their wall times), each with its
+own provenance line: the page is rewritten as soon as a part ends, and ``--part`` remakes one
+part while keeping the other as it was measured (:data:`BENCH_PARTS`).
 """
 
 from __future__ import annotations
@@ -384,47 +385,69 @@ def section_paper_scale(args, docs: Path, runs: Path) -> Path:
 # --------------------------------------------------------------------------- benchmarks
 
 
-def _bench_part(name: str, extra: tuple[str, ...], args, runs: Path) -> tuple[str, str]:
-    """One part of the bench page: (its Markdown, the command shown).
+#: The bench page's parts: name -> (bench_rigs.py arguments, heading, what the part is). Each is
+#: measured by its own command and carries its own provenance line, so one part can be remade
+#: (``--part``) while the other stays as it was measured; the page is written after each part.
+BENCH_PARTS = {
+    "dev": (BENCH_RIGS_ARGS, "Rigs 0..11 and the main job over seed sets",
+            "Every method change up to the addition of the held-out rigs was chosen on these rigs."),
+    "held_out": (BENCH_RIGS_HELD_OUT_ARGS, "Held-out rigs",
+                 "Rigs 100..111 of every family, with the same methods. Every method change up to their "
+                 "addition was chosen on the rigs above (seeds 0..11); these were not looked at before, so "
+                 "the difference between the two tables is what that choosing bought on rigs the method "
+                 "was not shaped on. The bars are the same."),
+}
+#: The line that opens a part's block in docs/generated/bench_rigs.md.
+PART_MARK = "<!-- part: {name} -->"
 
-    The part's Markdown is kept in ``--runs`` (``<name>.md``) beside a stamp (``<name>.stamp``:
-    the commit, the environment and the command), so a part already measured survives a later
-    part's failure. With ``--resume`` a part whose stamp matches this checkout (clean tree, same
-    commit, environment and command) is read back instead of rerun; the stamp is removed before a
-    run starts and written only after it ends, so an interrupted run is never reused.
-    """
-    md, stamp = runs / f"{name}.md", runs / f"{name}.stamp"
+
+def bench_page_parts(text: str) -> dict[str, str]:
+    """The blocks of a bench page, ``{part: block}`` (each from its mark to the next)."""
+    out: dict[str, str] = {}
+    name = None
+    for line in text.splitlines(keepends=True):
+        marks = [n for n in BENCH_PARTS if line.strip() == PART_MARK.format(name=n)]
+        if marks:
+            name = marks[0]
+            out[name] = ""
+        if name is not None:
+            out[name] += line
+    return out
+
+
+def _bench_block(name: str, args, runs: Path) -> str:
+    """Measure one part of the bench page (``bench_rigs.py`` with its arguments) and return its
+    block: mark, heading, provenance, command, the bench's own Markdown."""
+    extra, heading, about = BENCH_PARTS[name]
+    stem = "bench_rigs" if name == "dev" else f"bench_rigs_{name}"
+    md = runs / f"{stem}.md"
     cmd = [sys.executable, "scripts/bench_rigs.py", *extra, "--jobs", str(args.jobs),
-           "--json", str(runs / f"{name}.json"), "--markdown", str(md)]
-    shown = _shown(cmd[:-4])  # without the --json/--markdown files
-    commit = _commit()
-    key = {"commit": commit, "environment": _environment(), "command": shown}
-    if args.resume and md.is_file() and stamp.is_file() and " " not in commit:  # a clean checkout only
-        had = json.loads(stamp.read_text())
-        if {k: had.get(k) for k in key} == key:
-            print(f"reproduce: {name}: reusing the part measured {had['measured']} ({md})", file=sys.stderr, flush=True)
-            return md.read_text() + f"\nThis part measured {had['measured']}.\n", shown
-    stamp.unlink(missing_ok=True)
-    start = _now()
-    _run(cmd, log=runs / f"{name}.log")
-    measured = f"{start} to {_now()}"
-    stamp.write_text(json.dumps({**key, "measured": measured}, indent=1))
-    return md.read_text() + f"\nThis part measured {measured}.\n", shown
+           "--json", str(runs / f"{stem}.json"), "--markdown", str(md)]
+    _run(cmd, log=runs / f"{stem}.log")
+    body = md.read_text()
+    if name == "held_out":  # its family table is the page's second one
+        body = body.replace("<!-- table: families -->", "<!-- table: families_held_out -->")
+    return "\n".join([PART_MARK.format(name=name), f"## {heading}", "", provenance(), "",
+                      f"Command: `{_shown(cmd[:-4])}`.", "", about, "", body.rstrip(), "", ""])
 
 
 def section_bench_rigs(args, docs: Path, runs: Path) -> Path:
-    dev, shown = _bench_part("bench_rigs", BENCH_RIGS_ARGS, args, runs)
-    held_out, shown_held_out = _bench_part("bench_rigs_held_out", BENCH_RIGS_HELD_OUT_ARGS, args, runs)
-    held_out = held_out.replace("<!-- table: families -->", "<!-- table: families_held_out -->")
-    L = _head("bench_rigs", "Seed sets and random rigs: measured results", shown) + [dev]
-    L += ["## Held-out rigs", "",
-          f"Command: `{shown_held_out}`.", "",
-          "Rigs 100..111 of every family, with the same methods. Every method change up to their "
-          "addition was chosen on the rigs above (seeds 0..11); these were not looked at before, so "
-          "the difference between the two tables is what that choosing bought on rigs the method "
-          "was not shaped on. The bars are the same.", "", held_out]
+    """Both parts (or ``--part``'s one) of docs/generated/bench_rigs.md; the page is rewritten
+    after each part ends, keeping the other part's block as it was measured."""
     path = docs / "bench_rigs.md"
-    path.write_text("\n".join(L))
+    chosen = [args.part] if args.part else list(BENCH_PARTS)
+    blocks = bench_page_parts(path.read_text()) if path.is_file() else {}
+    missing = [n for n in BENCH_PARTS if n not in chosen and n not in blocks]
+    if missing:
+        raise SystemExit(f"reproduce: {path} has no '{missing[0]}' part to keep (no line "
+                         f"{PART_MARK.format(name=missing[0])!r}); run without --part to measure both parts")
+    for name in chosen:
+        blocks[name] = _bench_block(name, args, runs)
+        head = [BANNER.format(command="python scripts/reproduce.py --only bench_rigs"), "",
+                "# Seed sets and random rigs: measured results", "",
+                "Two parts, each with its own provenance line and command; "
+                "`python scripts/reproduce.py --only bench_rigs --part dev` (or `held_out`) remakes one.", "", ""]
+        path.write_text("\n".join(head) + "".join(blocks[n] for n in BENCH_PARTS if n in blocks))
     return path
 
 
@@ -447,9 +470,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="worker processes for bench_rigs, and paper_scale seed sets run at a time (default 2)")
     ap.add_argument("--runs", default=str(ROOT / "runs"), help="where the runs are written (default runs/)")
     ap.add_argument("--docs", default=str(ROOT / "docs" / "generated"), help="where the Markdown goes")
-    ap.add_argument("--resume", action="store_true",
-                    help="bench_rigs: reuse a part (dev or held-out rigs) already measured into --runs by this "
-                         "commit in this environment, instead of rerunning it")
+    ap.add_argument("--part", choices=sorted(BENCH_PARTS),
+                    help="bench_rigs: measure only this part of the page and keep the other as it was measured")
     args = ap.parse_args(argv)
     chosen = [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = [s for s in chosen if s not in SECTIONS]

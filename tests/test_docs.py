@@ -135,9 +135,13 @@ def test_bench_rigs_page_matches_the_code():
     args = reproduce.BENCH_RIGS_HELD_OUT_ARGS
     assert {r[meth_col] for r in held[1:]} == set(args[args.index("--methods") + 1].split(","))
     assert {r[fam_col] for r in held[1:]} == set(bench.rig_families.FAMILIES)
-    # the commands the page names are the ones reproduce.py runs
-    assert " ".join(reproduce.BENCH_RIGS_ARGS) in text
-    assert " ".join(reproduce.BENCH_RIGS_HELD_OUT_ARGS) in text
+    # two parts, each with its own provenance line and the command reproduce.py runs for it
+    blocks = reproduce.bench_page_parts(text)
+    assert list(blocks) == list(reproduce.BENCH_PARTS), list(blocks)
+    for name, block in blocks.items():
+        assert block.count("\nMeasured ") == 1, name
+        assert f"`python scripts/bench_rigs.py {' '.join(reproduce.BENCH_PARTS[name][0])} --jobs " in block, name
+    assert "<!-- table: families_held_out -->" in blocks["held_out"]
 
 
 @pytest.mark.parametrize("section", sorted(reproduce.CAPTURED))
