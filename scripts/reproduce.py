@@ -441,13 +441,14 @@ def section_bench_rigs(args, docs: Path, runs: Path) -> Path:
     if missing:
         raise SystemExit(f"reproduce: {path} has no '{missing[0]}' part to keep (no line "
                          f"{PART_MARK.format(name=missing[0])!r}); run without --part to measure both parts")
+    head = "\n".join([BANNER.format(command="python scripts/reproduce.py --only bench_rigs"), "",
+                      "# Seed sets and random rigs: measured results", "",
+                      "Two parts, each with its own provenance line and command; "
+                      "`python scripts/reproduce.py --only bench_rigs --part dev` (or `held_out`) remakes one.",
+                      "", ""])
     for name in chosen:
         blocks[name] = _bench_block(name, args, runs)
-        head = [BANNER.format(command="python scripts/reproduce.py --only bench_rigs"), "",
-                "# Seed sets and random rigs: measured results", "",
-                "Two parts, each with its own provenance line and command; "
-                "`python scripts/reproduce.py --only bench_rigs --part dev` (or `held_out`) remakes one.", "", ""]
-        path.write_text("\n".join(head) + "".join(blocks[n] for n in BENCH_PARTS if n in blocks))
+        path.write_text(head + "".join(blocks[n] for n in BENCH_PARTS if n in blocks))
     return path
 
 
@@ -477,6 +478,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [s for s in chosen if s not in SECTIONS]
     if unknown:
         ap.error(f"unknown section(s) {unknown}; choose from {', '.join(SECTIONS)}")
+    if args.part and "bench_rigs" not in chosen:
+        ap.error(f"--part {args.part} is a part of bench_rigs, which --only does not choose")
     docs, runs = Path(args.docs), Path(args.runs)
     docs.mkdir(parents=True, exist_ok=True)
     runs.mkdir(parents=True, exist_ok=True)

@@ -92,3 +92,10 @@ def test_held_out_failure_keeps_the_new_dev_part(bench, tmp_path, monkeypatch):
         reproduce.section_bench_rigs(_args(), docs, runs)
     blocks = reproduce.bench_page_parts((docs / "bench_rigs.md").read_text())
     assert "| run 3 |" in blocks["dev"] and "| run 2 |" in blocks["held_out"]  # new dev, old held-out
+
+
+def test_part_without_the_bench_section_is_refused(bench, capsys):
+    with pytest.raises(SystemExit):
+        reproduce.main(["--only", "main_job", "--part", "held_out"])
+    assert "--part held_out is a part of bench_rigs" in capsys.readouterr().err
+    assert bench == []
