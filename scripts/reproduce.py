@@ -176,13 +176,16 @@ def _rel(arg: str) -> str:
     return arg
 
 
-def _shown(cmd: list[str]) -> str:
+def _shown(cmd: list[str], runs: Path | None = None) -> str:
     """The command as a user types it from the repository root (``python``/``microctl`` instead
-    of this interpreter, paths relative, no ``--quiet``)."""
+    of this interpreter, paths relative, no ``--quiet``); a path under ``runs`` (reproduce.py's
+    ``--runs``, wherever it was) is shown under the default ``runs/``."""
     if cmd[:3] == [sys.executable, "-m", "microctl"]:
         cmd = ["microctl", *cmd[3:]]
     elif cmd[0] == sys.executable:
         cmd = ["python", *cmd[1:]]
+    if runs is not None:
+        cmd = [str(Path("runs") / Path(a).relative_to(runs)) if Path(a).is_relative_to(runs) else a for a in cmd]
     return " ".join(_rel(a) for a in cmd if a != "--quiet")
 
 
@@ -205,7 +208,7 @@ def run_experiment_cli(experiment: str, out: Path, offset: int = 0) -> tuple[dic
     """Run the experiment through the command line; (results, wall time s, the command shown)."""
     cmd = experiment_cmd(experiment, out, offset)
     _, wall = _run(cmd)
-    return json.loads((out / "results.json").read_text()), wall, _shown(cmd)
+    return json.loads((out / "results.json").read_text()), wall, _shown(cmd, runs=out.parent)
 
 
 # --------------------------------------------------------------------------- experiments

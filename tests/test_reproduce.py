@@ -1,4 +1,6 @@
-"""scripts/reproduce.py writes the bench page (docs/generated/bench_rigs.md) in two parts, each
+"""scripts/reproduce.py's pages: the commands they show, and the bench page's parts.
+
+reproduce.py writes the bench page (docs/generated/bench_rigs.md) in two parts, each
 with its own provenance line and command: the page is rewritten as soon as a part ends, and
 ``--part`` remakes one part while keeping the other's block as it was measured. The bench is
 replaced by a stand-in that writes the part's Markdown the way ``bench_rigs.py --markdown FILE``
@@ -99,3 +101,13 @@ def test_part_without_the_bench_section_is_refused(bench, capsys):
         reproduce.main(["--only", "main_job", "--part", "held_out"])
     assert "--part held_out is a part of bench_rigs" in capsys.readouterr().err
     assert bench == []
+
+
+def test_commands_show_the_runs_folder_as_the_default(tmp_path):
+    """A page names the command a user types (``--out runs/paper``), wherever reproduce.py's
+    ``--runs`` was; other arguments are kept."""
+    runs = tmp_path / "elsewhere"
+    cmd = reproduce.experiment_cmd("configs/experiments/paper.yaml", runs / "paper", 10_000)
+    assert reproduce._shown(cmd, runs=runs) == ("microctl experiment configs/experiments/paper.yaml --out runs/paper "
+                                                "--seed-offset 10000")
+    assert str(tmp_path) in reproduce._shown(cmd)  # without runs=, the path as it was
