@@ -758,6 +758,19 @@ def print_seed_sets(sets: list[dict]) -> None:
                 print(f"  set {r['set']}: {n}: {b['detail']}")
 
 
+def each_done(fn, arg_lists: list[tuple], jobs: int):
+    """``fn(*args)`` for each ``args`` of ``arg_lists``, in ``jobs`` worker processes when
+    ``jobs > 1``; yields the results in that order, each as soon as it (and those before it) ended."""
+    if jobs > 1:
+        with ProcessPoolExecutor(jobs) as ex:
+            futs = [ex.submit(fn, *a) for a in arg_lists]
+            for fu in futs:
+                yield fu.result()
+    else:
+        for a in arg_lists:
+            yield fn(*a)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rigs", type=int, default=24)
@@ -798,16 +811,9 @@ def main(argv: list[str] | None = None) -> int:
             sets = [run_seed_set(k, args.experiment) for k in ks]
         print_seed_sets(sets)
     results: list[dict] = []
-    if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as ex:
-            futs = [ex.submit(run_rig, s, sizes, methods) for s in seeds]
-            for f in futs:
-                results.append(f.result())
-                print(f"  rig {results[-1]['seed']} done", file=sys.stderr)
-    else:
-        for s in seeds:
-            results.append(run_rig(s, sizes, methods))
-            print(f"  rig {s} done", file=sys.stderr)
+    for res in each_done(run_rig, [(s, sizes, methods) for s in seeds], args.jobs):
+        results.append(res)
+        print(f"  rig {res['seed']} done", file=sys.stderr)
     if args.verbose and results:
         for res in results:
             print(f"\nrig {res['seed']}: friction {res['friction']}, gauge {res['gauge_um']:.3f} µm, "
@@ -856,21 +862,11 @@ def main_families(args) -> int:
         print_seed_sets(sets)
     jobs = [(f, s) for f in fams for s in seeds]
     results: list[dict] = []
-    if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as ex:
-            futs = [ex.submit(run_family_rig, f, s, sizes, methods) for f, s in jobs]
-            for fu in futs:
-                results.append(fu.result())
-                print(f"  {results[-1]['family']} rig {results[-1]['seed']} done ({time.perf_counter() - t0:.0f} s)",
-                      file=sys.stderr)
-                if args.json:  # partial results survive an interrupted run
-                    Path(args.json).write_text(json.dumps({"rigs": results}, indent=1, default=float))
-    else:
-        for f, s in jobs:
-            results.append(run_family_rig(f, s, sizes, methods))
-            print(f"  {f} rig {s} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-            if args.json:  # partial results survive an interrupted run
-                Path(args.json).write_text(json.dumps({"rigs": results}, indent=1, default=float))
+    for res in each_done(run_family_rig, [(f, s, sizes, methods) for f, s in jobs], args.jobs):
+        results.append(res)
+        print(f"  {res['family']} rig {res['seed']} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+        if args.json:  # partial results survive an interrupted run
+            Path(args.json).write_text(json.dumps({"rigs": results}, indent=1, default=float))
     table = family_tables(results, fams, sizes, methods)
     print_families(table, results)
     wall = time.perf_counter() - t0
