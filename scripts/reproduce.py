@@ -111,23 +111,15 @@ def _commit() -> str:
         return "unknown (not a git checkout)"
 
 
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-
-
-def _environment() -> str:
-    """The machine and the numerical environment a number was measured in (without the load)."""
-    return (f"{platform.machine()}{_cpu_model()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
-            f"{_library_versions()}")
-
-
 def provenance() -> str:
     """When, from which commit and on which machine: one line for every generated file."""
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     try:  # timings depend on what else the machine was doing
         load = " (load average " + ", ".join(f"{x:.1f}" for x in os.getloadavg()) + " over 1, 5, 15 min at the end)"
     except OSError:
         load = ""
-    return f"Measured {_now()}, commit {_commit()}; {_environment()}{load}."
+    return (f"Measured {now}, commit {_commit()}; {platform.machine()}{_cpu_model()}, {os.cpu_count()} CPUs{load}, "
+            f"Python {platform.python_version()}, {_library_versions()}.")
 
 
 def _cpu_model() -> str:
@@ -418,6 +410,17 @@ def bench_page_parts(text: str) -> dict[str, str]:
     return out
 
 
+def kept_bench_blocks(path: Path, part: str | None) -> dict[str, str]:
+    """The blocks of the bench page at ``path`` (none if it does not exist). ValueError when
+    ``part`` (remake only this one) leaves another part to keep that the page does not have."""
+    blocks = bench_page_parts(path.read_text()) if path.is_file() else {}
+    missing = [n for n in BENCH_PARTS if part and n != part and n not in blocks]
+    if missing:
+        raise ValueError(f"{path} has no '{missing[0]}' part to keep (no line "
+                         f"{PART_MARK.format(name=missing[0])!r}); run without --part to measure both parts")
+    return blocks
+
+
 def _bench_block(name: str, args, runs: Path) -> str:
     """Measure one part of the bench page (``bench_rigs.py`` with its arguments) and return its
     block: mark, heading, provenance, command, the bench's own Markdown."""
@@ -439,11 +442,10 @@ def section_bench_rigs(args, docs: Path, runs: Path) -> Path:
     after each part ends, keeping the other part's block as it was measured."""
     path = docs / "bench_rigs.md"
     chosen = [args.part] if args.part else list(BENCH_PARTS)
-    blocks = bench_page_parts(path.read_text()) if path.is_file() else {}
-    missing = [n for n in BENCH_PARTS if n not in chosen and n not in blocks]
-    if missing:
-        raise SystemExit(f"reproduce: {path} has no '{missing[0]}' part to keep (no line "
-                         f"{PART_MARK.format(name=missing[0])!r}); run without --part to measure both parts")
+    try:
+        blocks = kept_bench_blocks(path, args.part)
+    except ValueError as e:
+        raise SystemExit(f"reproduce: {e}") from None
     head = "\n".join([BANNER.format(command="python scripts/reproduce.py --only bench_rigs"), "",
                       "# Seed sets and random rigs: measured results", "",
                       "Two parts, each with its own provenance line and command; "
@@ -484,6 +486,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.part and "bench_rigs" not in chosen:
         ap.error(f"--part {args.part} is a part of bench_rigs, which --only does not choose")
     docs, runs = Path(args.docs), Path(args.runs)
+    try:  # before any section runs, not after the ones before bench_rigs
+        kept_bench_blocks(docs / "bench_rigs.md", args.part)
+    except ValueError as e:
+        ap.error(str(e))
     docs.mkdir(parents=True, exist_ok=True)
     runs.mkdir(parents=True, exist_ok=True)
     for s in SECTIONS:

@@ -111,3 +111,14 @@ def test_commands_show_the_runs_folder_as_the_default(tmp_path):
     assert reproduce._shown(cmd, runs=runs) == ("microctl experiment configs/experiments/paper.yaml --out runs/paper "
                                                 "--seed-offset 10000")
     assert str(tmp_path) in reproduce._shown(cmd)  # without runs=, the path as it was
+
+
+def test_part_without_a_block_to_keep_is_refused_before_any_section(bench, tmp_path, capsys):
+    """The refusal comes before main_job (the section before bench_rigs) runs, with exit 2."""
+    docs, runs = _dirs(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        reproduce.main(["--only", "main_job,bench_rigs", "--part", "held_out", "--docs", str(docs),
+                        "--runs", str(runs)])
+    assert e.value.code == 2
+    assert "has no 'dev' part to keep" in capsys.readouterr().err
+    assert bench == [] and not list(runs.iterdir())
