@@ -81,9 +81,15 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from microctl.cli import one_blas_thread  # noqa: E402
+
+# Before NumPy loads: the workers' numerics on one BLAS thread each, as the command line runs
+# them (two threads per worker on two cores oversubscribed them; a user's count wins).
+one_blas_thread(os.environ, sys.modules)
+
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from microctl.backends.collect import run_collect  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402

@@ -61,11 +61,17 @@ import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from microctl.cli import one_blas_thread  # noqa: E402
+
+# Before NumPy loads: the workers' numerics on one BLAS thread each, as the command line runs
+# them (two threads per worker on two cores oversubscribed them; a user's count wins).
+one_blas_thread(os.environ, sys.modules)
+
 import casadi as ca
 import numpy as np
 from scipy.optimize import minimize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_rigs import TARGETS_UM, make_rig, train_on_rig  # noqa: E402
