@@ -2,10 +2,25 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
-import pytest
+from microctl.cli import BLAS_THREAD_VARIABLES, one_blas_thread
+
+#: Set where this file chose the BLAS thread count, so that pytest-xdist's workers, which inherit
+#: the environment, tell its choice from the user's.
+SUITE_CHOSE_BLAS = "MICROCTL_TESTS_CHOSE_BLAS_THREADS"
+#: Whether whoever started pytest chose a BLAS thread count (then it is kept).
+USER_CHOSE_BLAS_THREADS = (os.environ.get(SUITE_CHOSE_BLAS) != "1"
+                           and any(v in os.environ for v in BLAS_THREAD_VARIABLES))
+# Before any test imports NumPy: each test process's BLAS on one thread, as the command line runs
+# it (microctl.cli.one_blas_thread). With pytest-xdist's two workers on two cores, two BLAS threads
+# each oversubscribed the machine and the threads spun waiting for each other.
+if one_blas_thread(os.environ, sys.modules):
+    os.environ[SUITE_CHOSE_BLAS] = "1"
+
+import pytest  # noqa: E402
 
 # The tests mirror the packages (tests/stage/, tests/gp/, ...); the shared helpers beside this file
 # (independent_stage.py, serial_rig.py, CONFIGS here) are importable from every folder.

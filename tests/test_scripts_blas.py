@@ -1,5 +1,6 @@
-"""The benchmark scripts that run the package's numerics in worker processes start their BLAS on
-one thread, as the command line does (microctl.cli.one_blas_thread), unless the user chose a count.
+"""The benchmark scripts that run the package's numerics in worker processes, and the test suite
+(tests/conftest.py), start their BLAS on one thread, as the command line does
+(microctl.cli.one_blas_thread), unless the user chose a count.
 
 Two BLAS threads in each of two workers on two cores oversubscribe the machine (a worker was
 seen above 100 % CPU with much of the time in the kernel), and the rounding then differs from
@@ -57,3 +58,16 @@ def test_pooled_script_runs_one_blas_thread_unless_the_user_chose(script):
     assert _threads(script, {}) == (1, 1)
     # a user's count wins (2: more than one, and no more than this machine's cores)
     assert _threads(script, {"OPENBLAS_NUM_THREADS": "2"}) == (2, 2)
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: a BLAS pool has one thread whatever the suite does")
+def test_the_suite_runs_one_blas_thread_unless_the_user_chose():
+    import conftest
+    from threadpoolctl import threadpool_info
+
+    if conftest.USER_CHOSE_BLAS_THREADS:
+        pytest.skip("pytest was started with a BLAS thread count of the user's")
+    import numpy  # noqa: F401  (the BLAS libraries are loaded)
+
+    threads = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert threads and max(threads) == 1, threads
