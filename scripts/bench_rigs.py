@@ -90,7 +90,6 @@ one_blas_thread(os.environ, sys.modules)
 
 import numpy as np
 
-
 from microctl.backends.collect import run_collect  # noqa: E402
 from microctl.backends.simulated import SimulatedStage  # noqa: E402
 from microctl.control.controller import (  # noqa: E402
