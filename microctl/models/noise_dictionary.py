@@ -40,6 +40,14 @@ u_prev = K^+ q_prev, K^+ the pseudo-inverse of eq. 12's K):
 ``<c>:sq``         u_c^2                       scatter growing with the pose's distance from
                                                level in c (a gauge over a tilted target)
 
+The ``f<i>:light`` candidates read the CAD contact model. On a stage whose CAD geometry shares
+the preload evenly among the balls at every pose (Table I: four balls symmetric about the axis,
+so commands q = K u never load the platform's twist mode), they are nearly constant over the
+workspace and describe almost nothing. A ball whose actual load does move with the pose there (a
+worn seat that sits it low, unequal actuator gains: both load the twist mode through heights the
+CAD model does not have) is described by the tilt source of :func:`select_features` alone, a
+scatter growing exponentially along a direction of the pose that the data choose.
+
 Selection (:func:`select_features`) is forward and evidence-based with a multiple-testing
 discipline: on the residual of the mean correction, r ~ N(0, c_0 + sum_S c_j phi_j(x)) with
 c >= 0 is fitted by maximum likelihood; the candidate that raises the maximised log-likelihood

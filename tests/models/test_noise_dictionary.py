@@ -79,6 +79,27 @@ def test_ball_load_map_matches_the_contact_physics(afm):
     assert np.allclose(f0.sum(), afm.stage.physics.preload_n, rtol=1e-3)
 
 
+def test_light_ball_candidates_are_nearly_flat_on_the_symmetric_cad_stage(afm):
+    """The module docstring's statement: on Table I's geometry the CAD loads hardly move with the
+    pose, so each ``f<i>:light`` candidate varies by under 5 % over the vertices of the workspace
+    polytope (the whole workspace: the candidate is monotone in the affine load). The physics
+    solver gives the loads here, not the dictionary's ball_load_map."""
+    from microctl.control.controller import RedundantSet
+
+    model = contact_model(afm.stage, Effects())
+    V = RedundantSet(afm).vertices
+    h = ball_heights(model, V @ afm.K.T)
+    p, active = solve_equilibrium(model, h)
+    assert active.all()
+    X = np.hstack([np.zeros((len(V), afm.n_s)), V])  # the light candidates read the pose only
+    c = candidate_features(afm)
+    for i in range(afm.n_q):
+        phi = c.values(X)[:, c.names.index(f"f{i + 1}:light")]
+        assert phi.max() / phi.min() - 1.0 < 0.05
+    F = model.k_c * (h - p @ model.A.T)
+    assert np.ptp(F, axis=0).max() < 0.01 * F.mean()
+
+
 def test_candidates_cover_each_actuator_and_kind(afm):
     c = candidate_features(afm)
     for nm in afm.actuator_names:
@@ -252,6 +273,32 @@ def test_max_statistic_p_values_are_calibrated_on_the_correlated_dictionary(afm)
         v = np.full(150, r2.mean())
         hits += bool(_max_stat_pvalues(r2, v, Phi).min() <= 0.05)
     assert 16 <= hits <= 46, hits
+
+
+@pytest.mark.slow
+def test_the_tilt_likelihood_ratio_is_referred_to_a_null_that_is_not_anti_conservative(afm):
+    """The tilt's entry test (``_tilt_option``) refers its log-likelihood gain g to chi2 with k + 1
+    degrees of freedom (2 g). Under the null its direction is not identified (a Davies problem), so
+    chi2 is not guaranteed to hold; this checks that its tail is not the heavier one. On 200
+    homoscedastic residual vectors (seeds fixed) at 150 random poses, the share with
+    chi2.sf(2 g, k + 1) <= 0.05 is 3 to 19 of 200 (binomial(200, 0.05): P(X <= 2) = 0.002,
+    P(X >= 20) = 0.004). Too many would make every tilt p-value too small (the Bonferroni factor
+    on top would then not give the level it claims); too few, a tilt fit that no longer finds the
+    best direction."""
+    from scipy import stats
+
+    from microctl.models.noise_dictionary import _fit_tilt
+
+    hits = 0
+    for seed in range(3000, 3200):
+        rng = np.random.default_rng(seed)
+        U = afm.workspace.sample(150, rng)
+        Z = (U - U.mean(axis=0)) / U.std(axis=0)
+        r2 = (0.05 * rng.standard_normal(150)) ** 2
+        ll0, _ = _fit_variance(r2, np.zeros((150, 0)))
+        lt, _, _ = _fit_tilt(r2, np.zeros((150, 0)), Z)
+        hits += bool(stats.chi2.sf(2.0 * max(lt - ll0, 0.0), Z.shape[1] + 1) <= 0.05)
+    assert 3 <= hits <= 19, hits
 
 
 def test_a_source_the_bound_fit_does_not_support_is_dropped():
