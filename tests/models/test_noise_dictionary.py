@@ -282,7 +282,7 @@ def test_the_tilt_likelihood_ratio_is_referred_to_a_null_that_is_not_anti_conser
     chi2 is not guaranteed to hold; this checks that its tail is not the heavier one. On 200
     homoscedastic residual vectors (seeds fixed) at 150 random poses, the share with
     chi2.sf(2 g, k + 1) <= 0.05 is 3 to 19 of 200 (binomial(200, 0.05): P(X <= 2) = 0.002,
-    P(X >= 20) = 0.004). Too many would make every tilt p-value too small (the Bonferroni factor
+    P(X >= 20) = 0.003). Too many would make every tilt p-value too small (the Bonferroni factor
     on top would then not give the level it claims); too few, a tilt fit that no longer finds the
     best direction."""
     from scipy import stats
