@@ -11,7 +11,7 @@ import pytest
 
 from microctl.gp.shaped_features import SHAPES, ShapedFeatures
 from microctl.models.afm import AnalyticForwardModel
-from microctl.models.noise_dictionary import (REFINE_MIN_GAIN, _fit_variance, _max_stat_pvalues,
+from microctl.models.noise_dictionary import (REFINE_MIN_GAIN, _fit_tilt, _fit_variance, _max_stat_pvalues,
                                              _refine_shapes, ball_load_map, candidate_features, quantity,
                                              select_features)
 from microctl.stage.causes import Effects
@@ -93,8 +93,9 @@ def test_light_ball_candidates_are_nearly_flat_on_the_symmetric_cad_stage(afm):
     assert active.all()
     X = np.hstack([np.zeros((len(V), afm.n_s)), V])  # the light candidates read the pose only
     c = candidate_features(afm)
+    values = c.values(X)
     for i in range(afm.n_q):
-        phi = c.values(X)[:, c.names.index(f"f{i + 1}:light")]
+        phi = values[:, c.names.index(f"f{i + 1}:light")]
         assert phi.max() / phi.min() - 1.0 < 0.05
     F = model.k_c * (h - p @ model.A.T)
     assert np.ptp(F, axis=0).max() < 0.01 * F.mean()
@@ -286,8 +287,6 @@ def test_the_tilt_likelihood_ratio_is_referred_to_a_null_that_is_not_anti_conser
     on top would then not give the level it claims); too few, a tilt fit that no longer finds the
     best direction."""
     from scipy import stats
-
-    from microctl.models.noise_dictionary import _fit_tilt
 
     hits = 0
     for seed in range(3000, 3200):
