@@ -20,7 +20,9 @@ inputs, with a fixed prior variance (no hyperparameter of the block).
 :class:`KernelSpec` says which parts a kernel has and where each hyperparameter sits in a
 flat block; :class:`Kernel` is one kernel with its hyperparameters, evaluated in NumPy
 (:meth:`Kernel.matrix`, :meth:`Kernel.diag`, :meth:`Kernel.grad_traces`) and as CasADi
-expressions against fixed training inputs (:meth:`Kernel.casadi_column`).
+expressions against fixed training inputs (:meth:`Kernel.casadi_column`). Its *feature form*
+(:meth:`Kernel.features`, :meth:`Kernel.se_remainder`) writes it as explicit features plus a
+PSD remainder, from which :mod:`microctl.gp.posterior` computes f's variance in O(n p).
 
 A kernel of d lengthscales reads the first d columns of its inputs: inputs may carry further
 columns that only g's prior mean reads (a move's context, such as each actuator's last
@@ -360,6 +362,72 @@ class Kernel:
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
         return value, grad
+
+    # ---- the feature form (the posterior's low-rank variance of f) -----------------
+    # The SE part factors as sf2 a(z) a(z') exp(z . z') with z = x / l and a(z) = exp(-|z|^2 / 2),
+    # so with psi = [a(z), 1 (bias), x (linear), phi(x) (trend)] and weights
+    # w = [sf2, b, v, v_t], every kernel of the family is
+    #     k(x, x') = psi(x)^T diag(w) psi(x') + e(x, x'),
+    #     e(x, x') = sf2 a(z) a(z') (exp(z . z') - 1),       e(x, x) = sf2 (1 - exp(-|z|^2)),
+    # and e is itself a PSD kernel (exp(z . z') - 1 = sum_k>=1 (z . z')^k / k!, a sum of PSD
+    # kernels, times a(z) a(z')). When the lengthscales are long and sf2 is small (f's SE part
+    # switched off: signal variance at its floor, lengthscales at their upper bound), e is
+    # below 1e-8 of the output variance at the data: :mod:`microctl.gp.posterior` uses it.
+    @property
+    def feature_weights(self) -> np.ndarray:
+        """w of the feature form (comment above), shape (p,)."""
+        w = [self.signal_var] + ([self.bias_var] if self.log_bias_var is not None else [])
+        v = self.linear_vars
+        if v is not None:
+            w += list(v)
+        if self.trend is not None:
+            w += [self.trend.var] * self.trend.t
+        return np.array(w, dtype=float)
+
+    def _z2(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Z = self._cols(X) * np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        return Z, np.einsum("ij,ij->i", Z, Z)
+
+    def features(self, X: np.ndarray) -> np.ndarray:
+        """psi of the feature form at the rows of X, shape (m, p) (p = ``feature_weights.size``)."""
+        Z, z2 = self._z2(X)
+        cols = [np.exp(-0.5 * z2)[:, None]]
+        if self.log_bias_var is not None:
+            cols.append(np.ones((Z.shape[0], 1)))
+        if self.log_linear_vars is not None:
+            cols.append(self._cols(X))
+        if self.trend is not None:
+            cols.append(self.trend.values(X))
+        return np.hstack(cols)
+
+    def se_remainder(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
+        """e(Xa, Xb) of the feature form, shape (m, n), from ``expm1`` (no cancellation)."""
+        Za, za2 = self._z2(Xa)
+        Zb, zb2 = self._z2(Xb)
+        return self.signal_var * np.exp(-0.5 * za2)[:, None] * np.exp(-0.5 * zb2)[None, :] * np.expm1(Za @ Zb.T)
+
+    def se_remainder_diag(self, X: np.ndarray) -> np.ndarray:
+        """e(x, x) = sf2 (1 - exp(-|z|^2)) at the rows of X, shape (m,)."""
+        return -self.signal_var * np.expm1(-self._z2(X)[1])
+
+    def features_casadi(self, xs: ca.MX) -> ca.MX:
+        """psi of the feature form at a symbolic input xs (d', 1), shape (p, 1)."""
+        z = self._cols_ca(xs) * ca.DM(np.exp(-np.asarray(self.log_lengthscales, dtype=float)))
+        parts = [ca.exp(-0.5 * ca.sumsqr(z))]
+        if self.log_bias_var is not None:
+            parts.append(ca.DM(1.0))
+        if self.log_linear_vars is not None:
+            parts.append(self._cols_ca(xs))
+        if self.trend is not None:
+            parts.append(self.trend.casadi(xs))
+        return ca.vertcat(*parts)
+
+    def se_remainder_casadi_column(self, xs: ca.MX, X: np.ndarray) -> ca.MX:
+        """e(x*, X) of the feature form as an (n, 1) column for a symbolic input xs (d', 1)."""
+        Z, z2 = self._z2(X)
+        z = self._cols_ca(xs) * ca.DM(np.exp(-np.asarray(self.log_lengthscales, dtype=float)))
+        scale = ca.DM(self.signal_var * np.exp(-0.5 * z2))
+        return ca.exp(-0.5 * ca.sumsqr(z)) * (scale * ca.expm1(ca.mtimes(ca.DM(Z), z)))
 
     # ---- CasADi --------------------------------------------------------------------
     def casadi_column(self, xs: ca.MX, X: np.ndarray) -> ca.MX:

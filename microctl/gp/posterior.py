@@ -13,7 +13,8 @@ quantities and offers every form the package uses: the chunked prediction of
 :meth:`~microctl.gp.fitted.FittedVHGPR.predict`, the vectorised NumPy forms of the EAFM
 (mean of g, its GP variance, joint and pairwise forms) and the CasADi graphs of the EAFM
 (``k^T alpha`` means from one dense product, ``k** - ||L^-1 k||^2`` variances with ``L^-1``
-a constant sparse lower-triangular DM).
+a constant sparse lower-triangular DM, or f's in the feature form of its kernel when its SE
+part is off: :class:`Posterior`).
 """
 
 from __future__ import annotations
@@ -24,11 +25,12 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from microctl.gp.arrays import freeze
 from microctl.gp.kernels import CrossTerms, Kernel, se_matrix
 from microctl.gp.linalg import tril_inverse
 from microctl.gp.noise_prior import LogVarianceMean
 
-__all__ = ["G_GP_VAR_NEGLIGIBLE", "Posterior"]
+__all__ = ["F_SE_REMAINDER_NEGLIGIBLE", "G_GP_VAR_NEGLIGIBLE", "Posterior"]
 
 #: When the prior variance of g's GP part (signal + bias) is at most this (log-variance
 #: units: a standard deviation of 0.01, 1 % on the noise variance), its posterior variance,
@@ -37,6 +39,15 @@ __all__ = ["G_GP_VAR_NEGLIGIBLE", "Posterior"]
 #: so g's variance costs O(n) instead of O(n^2) per evaluation. Fits whose noise a parametric
 #: prior mean explains drive g's signal variance to its lower bound exp(-12), well below.
 G_GP_VAR_NEGLIGIBLE = 1e-4
+
+#: When the remainder e of f's kernel in its feature form (:mod:`microctl.gp.kernels`:
+#: ``k = psi^T diag(w) psi + e``, e the part of the SE term beyond its rank-one factor) has prior
+#: variance at most this at every training input (standardised units: 1e-8 of the output
+#: variance), f's variance is computed in that form, O(n p) per point instead of O(n^2). It is
+#: the conservative end of an interval that holds the exact variance (see :class:`Posterior`).
+#: A fit with f's SE part switched off (its signal variance at the floor exp(-12), its
+#: lengthscales at the upper bound e^6) has about 3e-9 there; one with the SE part on, far more.
+F_SE_REMAINDER_NEGLIGIBLE = 1e-8
 
 #: Kernel factors below exp(-_SE_FLUSH) are set to 0 in the pairwise products (< 1e-150 of
 #: the largest, far below round-off); their subnormal values and products slow exp and the
@@ -57,6 +68,21 @@ def _tril_dm(Linv: np.ndarray) -> ca.DM:
 
 class Posterior:
     """Posterior of f and g of a fitted VHGPR (standardised inputs ``xs``, shape (m, d)).
+
+    f's variance in the feature form of its kernel (when ``f_low_rank``): with the kernel
+    column ``k* = Psi W psi* + e*`` (``Psi`` (n, p) the features at the training inputs, ``W``
+    their weights, ``e*`` the remainder's column) and ``G = L_f^-1 Psi W`` (n, p),
+
+        c*^2 = k** - ||G psi* + L_f^-1 e*||^2
+             = k** - psi*^T (G^T G) psi* - 2 psi*^T (G^T L_f^-1) e* - ||L_f^-1 e*||^2,
+
+    and ``0 <= ||L_f^-1 e*||^2 <= e(x*, x*)`` (L_f L_f^T = K_f + R >= E + R with E, R PSD: the
+    explained variance of a GP part is at most its prior variance). The first three terms,
+    the upper end of that interval, are what is computed: O(n p + p^2) per point with the
+    (p, p) and (p, n) matrices precomputed, so a variance is never below the exact one and
+    exceeds it by at most ``e(x*, x*) = sf2 (1 - exp(-|z*|^2))``, below
+    :data:`F_SE_REMAINDER_NEGLIGIBLE` at the data and at most sf2 anywhere. The same in NumPy
+    and in the CasADi graph; with a sparse-form model (R a full PSD pseudo-noise) likewise.
 
     Parameters
     ----------
@@ -87,6 +113,10 @@ class Posterior:
         self._Lg_inv: ca.DM | None = None
         self._inv: dict[str, np.ndarray] = {}
         self._f_cross: CrossTerms | None = None
+        kf = self.f_kernel
+        #: f's variance in the feature form of its kernel (class docstring)
+        self.f_low_rank = bool(np.max(kf.se_remainder_diag(self.X)) <= F_SE_REMAINDER_NEGLIGIBLE)
+        self._f_lr: dict[str, np.ndarray] = {}
 
     def chol_inverse(self, which: str) -> np.ndarray:
         """``L^-1`` of f's (``"f"``) or g's (``"g"``) Cholesky factor, shape (n, n), computed once:
@@ -129,8 +159,28 @@ class Posterior:
                 s2[sl] = kg.diag(xs[sl]) - np.einsum("ij,ij->j", v, v) + gm.variance(xs[sl])
         return a, c2, mu, s2
 
-    def _f_var_from(self, xs: np.ndarray, Kf: np.ndarray) -> np.ndarray:
-        """[N prediction] c*^2 = k_f** - ||f_chol^-1 k_f*||^2 at the rows of xs from ``Kf = k_f(xs, X)``, unclipped."""
+    def f_low_rank_terms(self) -> dict[str, np.ndarray]:
+        """The precomputed matrices of f's variance in the feature form (class docstring),
+        computed once: ``M = G^T G`` (p, p) and ``H = G^T L_f^-1`` (p, n)."""
+        if not self._f_lr:
+            Linv = self.chol_inverse("f")
+            kf = self.f_kernel
+            G = Linv @ (kf.features(self.X) * kf.feature_weights)
+            H = G.T @ Linv
+            self._f_lr = {"M": G.T @ G, "H": np.ascontiguousarray(H)}
+            for a in self._f_lr.values():
+                freeze(a)
+        return self._f_lr
+
+    def _f_var_from(self, xs: np.ndarray, Kf: np.ndarray | None) -> np.ndarray:
+        """[N prediction] c*^2 = k_f** - ||f_chol^-1 k_f*||^2 at the rows of xs from ``Kf = k_f(xs, X)``, unclipped
+        (in the feature form when ``f_low_rank``: the class docstring; then Kf is not read)."""
+        if self.f_low_rank:
+            t = self.f_low_rank_terms()
+            kf = self.f_kernel
+            psi = kf.features(xs)
+            E = kf.se_remainder(xs, self.X)
+            return kf.diag(xs) - np.einsum("ij,ij->i", psi, psi @ t["M"] + 2.0 * (E @ t["H"].T))
         v = self.chol_inverse("f") @ Kf.T
         return self.f_kernel.diag(xs) - np.einsum("ij,ij->j", v, v)
 
@@ -142,7 +192,7 @@ class Posterior:
         chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
         for start in range(0, m, chunk):
             sl = slice(start, min(m, start + chunk))
-            c2[sl] = self._f_var_from(xs[sl], self.f_kernel.matrix(xs[sl], self.X))
+            c2[sl] = self._f_var_from(xs[sl], None if self.f_low_rank else self.f_kernel.matrix(xs[sl], self.X))
         return c2
 
     # ---- NumPy: vectorised forms (original units of y) -------------------------------------
@@ -272,14 +322,22 @@ class Posterior:
         standardised input xs (d, 1), in original units; only those requested enter the graph."""
         out: dict[str, ca.MX] = {}
         need_g = any(k in which for k in ("g_mean", "g_var"))
-        kf = self.f_kernel.casadi_column(xs, self.X) if any(k in which for k in ("f_mean", "f_var")) else None
+        need_kf = "f_mean" in which or ("f_var" in which and not self.f_low_rank)
+        kf = self.f_kernel.casadi_column(xs, self.X) if need_kf else None
         kg = self.g_kernel.casadi_column(xs, self.X) if need_g else None
         if "f_mean" in which:
             a = ca.dot(kf, ca.DM(np.asarray(self.f_alpha)))
             out["f_mean"] = self.y_mean + self.y_scale * a  # GP mean g_e
         if "f_var" in which:
             # epistemic variance  y_scale^2 (k** - ||L_f^-1 k||^2)  [N prediction]
-            out["f_var"] = self.y_scale**2 * (self.f_kernel.casadi_diag(xs) - ca.sumsqr(ca.mtimes(self._lf_inv(), kf)))
+            if self.f_low_rank:  # in the feature form (class docstring)
+                t = self.f_low_rank_terms()
+                psi = self.f_kernel.features_casadi(xs)
+                e = self.f_kernel.se_remainder_casadi_column(xs, self.X)
+                explained = ca.bilin(ca.DM(t["M"]), psi, psi) + 2.0 * ca.dot(psi, ca.mtimes(ca.DM(t["H"]), e))
+            else:
+                explained = ca.sumsqr(ca.mtimes(self._lf_inv(), kf))
+            out["f_var"] = self.y_scale**2 * (self.f_kernel.casadi_diag(xs) - explained)
         if need_g:
             # g's prior mean m(x) (noise_prior eq. 1; the constant mu0 for the paper's model) and
             # its parameter variance

@@ -13,7 +13,7 @@ module builds, from an :class:`~microctl.models.afm.AnalyticForwardModel` and a
 - :attr:`EAFM.function`, one named CasADi Function ``eafm(s, u) -> (t_mean, f_mean, f_var,
   g_mean, g_var, q)`` (MX graph; exact first and second derivatives by CasADi's AD);
 - :meth:`EAFM.expressions`, the same quantities as separate MX expressions of given
-  symbols, so that an NLP pulls in only what its objective needs (the O(n^2) epistemic
+  symbols, so that an NLP pulls in only what its objective needs (the epistemic
   terms are never evaluated by an NLP that does not use them);
 - :meth:`EAFM.predict`, the NumPy reference (``FittedVHGPR.predict`` + AFM);
 - vectorised NumPy helpers for the controller's global seeding
@@ -23,7 +23,8 @@ The GP's quantities, in NumPy and as CasADi graphs alike, are those of the model
 posterior, :class:`~microctl.gp.posterior.Posterior` (graph design, measured in
 ``docs/controller.md``: MX, not SX; the mean terms are ``k^T alpha`` with ``k`` built from
 one dense (n x d) product; the variance terms are ``k** - ||L^-1 k||^2`` with ``L^-1`` a
-constant lower-triangular (sparse) DM); this module adds the AFM and the stage binding.
+constant lower-triangular (sparse) DM, or, for f with its SE part off, the same in the feature
+form of its kernel, O(n p)); this module adds the AFM and the stage binding.
 """
 
 from __future__ import annotations

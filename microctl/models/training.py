@@ -117,7 +117,8 @@ SPARSE_SUBSET = 1000
 #: ``gp: auto`` fits the exact VHGPR up to this many rows and the sparse form above: up to it the
 #: sparse form would fit its hyperparameters on every row exactly anyway; above it the exact fit
 #: grows as n³ and the exact posterior makes the controller's cost grow with n (its epistemic
-#: variance is O(n²) per evaluation) while the sparse one stays at its inducing points.
+#: variance is O(n p) per evaluation with f's SE part off, O(n²) with it on) while the sparse
+#: one stays at its inducing points.
 #: ``scripts/bench_vhgpr.py``'s stage rows compare the two forms at 2000 moves (fit time, NLPD
 #: on held-out moves, controller time; docs/generated/bench_vhgpr.md).
 AUTO_SPARSE_ROWS = SPARSE_SUBSET
