@@ -48,6 +48,8 @@ G_GP_VAR_NEGLIGIBLE = 1e-4
 #: A fit with f's SE part switched off (its signal variance at the floor exp(-12), its
 #: lengthscales at the upper bound e^6) has about 3e-9 there; one with the SE part on, far more.
 F_SE_REMAINDER_NEGLIGIBLE = 1e-8
+#: The values of :class:`Posterior`'s ``f_form``.
+F_FORMS = ("auto", "dense", "features")
 
 #: Kernel factors below exp(-_SE_FLUSH) are set to 0 in the pairwise products (< 1e-150 of
 #: the largest, far below round-off); their subnormal values and products slow exp and the
@@ -90,9 +92,14 @@ class Posterior:
         Any object with its fields (``x_mean``, ``x_scale``, ``y_mean``, ``y_scale``, ``X``,
         ``f_alpha``, ``f_chol``, ``g_beta``, ``g_chol``) and kernels and prior means
         (``f_kernel``, ``g_kernel``, ``g_prior_mean``, ``g_prior_mean_with_uncertainty``).
+    f_form : {"auto", "dense", "features"}
+        How f's variance is computed: ``"auto"`` (default) in the feature form when the
+        remainder is below :data:`F_SE_REMAINDER_NEGLIGIBLE` at every training input, else
+        dense; ``"dense"`` or ``"features"`` always (the latter's interval is then as wide as
+        e(x*, x*) is: for tests and comparisons).
     """
 
-    def __init__(self, model: Any):
+    def __init__(self, model: Any, f_form: str = "auto"):
         self.x_mean = np.asarray(model.x_mean, dtype=float)
         self.x_scale = np.asarray(model.x_scale, dtype=float)
         self.y_mean = model.y_mean
@@ -113,9 +120,11 @@ class Posterior:
         self._Lg_inv: ca.DM | None = None
         self._inv: dict[str, np.ndarray] = {}
         self._f_cross: CrossTerms | None = None
-        kf = self.f_kernel
+        if f_form not in F_FORMS:
+            raise ValueError(f"Posterior: f_form must be one of {F_FORMS}, got {f_form!r}")
         #: f's variance in the feature form of its kernel (class docstring)
-        self.f_low_rank = bool(np.max(kf.se_remainder_diag(self.X)) <= F_SE_REMAINDER_NEGLIGIBLE)
+        self.f_low_rank = (f_form == "features" or (
+            f_form == "auto" and bool(np.max(self.f_kernel.se_remainder_diag(self.X)) <= F_SE_REMAINDER_NEGLIGIBLE)))
         self._f_lr: dict[str, np.ndarray] = {}
 
     def chol_inverse(self, which: str) -> np.ndarray:

@@ -106,13 +106,19 @@ def test_the_interval_holds_where_the_remainder_is_large_and_is_not_vacuous():
     xs = np.vstack([post.X, rng.normal(0, 2, (200, post.X.shape[1]))])
     exact = _exact_f_var(post, xs)
     np.testing.assert_allclose(post.f_var_std(xs), exact, rtol=0, atol=1e-12 * np.max(post.f_kernel.diag(xs)))
-    forced = Posterior(m)
-    forced.f_low_rank = True  # the test's own probe of the form, not a package path
+    forced = Posterior(m, f_form="features")
+    assert forced.f_low_rank
+    np.testing.assert_array_equal(Posterior(m, f_form="dense").f_var_std(xs), post.f_var_std(xs))
     low, width = forced.f_var_std(xs), post.f_kernel.se_remainder_diag(xs)
     tol = 1e-12 * np.max(post.f_kernel.diag(xs))
     assert np.all(low >= exact - tol)
     assert np.all(low <= exact + width + tol)
     assert np.max((low - exact) / width) > 0.2
+
+
+def test_an_unknown_form_is_refused_naming_the_valid_ones(se_off):
+    with pytest.raises(ValueError, match=r"f_form must be one of \('auto', 'dense', 'features'\), got 'fast'"):
+        Posterior(se_off[0], f_form="fast")
 
 
 def test_the_low_rank_graph_equals_numpy_and_its_gradient_central_differences(se_off):
