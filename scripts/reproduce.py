@@ -29,7 +29,7 @@ Sections (``--only`` picks some; default: all, in this order):
     The longest (the page records its wall time); add ``physical,noise_only`` to
     ``--methods`` for the previous noise model and objective side by side, ``eq4`` for the
     controller without the least-motion rule.
-``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``
+``bench_solve``, ``bench_vhgpr``, ``diagnosis_confusion``, ``bench_sequence``, ``bench_learn``, ``bench_memory``, ``bench_posterior``
     The other benchmark scripts with the arguments the docs quote; their printed tables are
     kept verbatim (``docs/generated/<name>.md``). Timings depend on the machine and its load.
 
@@ -83,6 +83,7 @@ CAPTURED = {
     "bench_sequence": ("scripts/bench_sequence.py", ("--rigs", "24")),
     "bench_learn": ("scripts/bench_learn.py", ("--rigs", "2", "--moves", "1000", "--refit-every", "250")),
     "bench_memory": ("scripts/bench_memory.py", ("--rigs", "10", "--moves", "200", "--targets", "20", "--diagnose")),
+    "bench_posterior": ("scripts/bench_posterior.py", ()),
 }
 SECTIONS = ("main_job", "paper_scale", "bench_rigs", *CAPTURED)
 #: Quantities of the per-offset table of the paper-scale rig: (label, controller, key).
