@@ -2,7 +2,8 @@
 """f's posterior variance: the feature form of its kernel against the dense form, timed and compared.
 
 For each training size in ``--sizes`` (125, 500, 1000): ``n`` covering moves on sim_paper's
-simulator and the residual model ``microctl train`` makes of them with the defaults (f's SE
+simulator and the residual model ``microctl train`` makes of them with the defaults
+(``scripts/bench_solve.py``'s ``build_model``, its ``physical`` fit) (f's SE
 part off once the data do not pay for it). The model's posterior is built twice,
 ``Posterior(model, f_form="dense")`` (``k** - ||L^-1 k||^2``, O(n^2) per point) and
 ``f_form="features"`` (:class:`~microctl.gp.posterior.Posterior`: O(n p)), and each is timed on
@@ -37,27 +38,11 @@ one_blas_thread(os.environ, sys.modules)
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
-from microctl.backends.collect import execute_moves  # noqa: E402
-from microctl.backends.simulated import SimulatedStage  # noqa: E402
+from bench_solve import ROOT, build_model  # noqa: E402
+
 from microctl.gp.posterior import Posterior  # noqa: E402
-from microctl.measurement.design import training_moves  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
-from microctl.models.training import ResidualData, ResidualModelSettings, train_residual_model  # noqa: E402
 from microctl.stage.config import load_stage_config  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def model_of(n: int, seed: int):
-    """The default residual model of n covering moves on sim_paper's simulator, and its fit time (s)."""
-    cfg = load_stage_config(ROOT / "configs/stage/sim_paper.yaml")
-    afm = AnalyticForwardModel(cfg.stage)
-    t0 = time.perf_counter()
-    with SimulatedStage(cfg, seed=seed) as st:
-        S, U, T = execute_moves(st, training_moves(afm, "covering", n, seed))
-    model = train_residual_model(ResidualData(np.hstack([S, U]), T - afm.t_of(U), ()), afm,
-                                 ResidualModelSettings(restarts=1))
-    return model, time.perf_counter() - t0
 
 
 def casadi_timer(post: Posterior, d: int):
@@ -90,8 +75,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'n':>5} {'p':>3} {'auto form':>9} {'numpy dense ms':>14} {'numpy feat ms':>13} {'ratio':>6} "
           f"{'casadi dense us':>15} {'casadi feat us':>14} {'ratio':>6} {'max rel diff':>12} {'max width':>10}")
     rng = np.random.default_rng(args.seed)
+    afm = AnalyticForwardModel(load_stage_config(ROOT / "configs/stage/sim_paper.yaml").stage)
     for n in (int(s) for s in args.sizes.split(",") if s.strip()):
-        model, _ = model_of(n, args.seed)
+        model, _ = build_model(afm, n, args.seed, "physical", None)  # bench_solve's: collect + train defaults
         dense, feat = Posterior(model, f_form="dense"), Posterior(model, f_form="features")
         auto = "features" if Posterior(model).f_low_rank else "dense"
         X = dense.X

@@ -170,7 +170,7 @@ def summarise_rigs(results: list[dict], large: float) -> dict:
     oracle_ratio = np.array([r["cum"]["greedy"] / r["cum"]["oracle_seq"] for r in results])
     seq_oracle = np.array([r["cum"]["sequence"] / r["cum"]["oracle_seq"] for r in results])
     # a second view, reported beside the bar's definition (not a bar): greedy's cumulative true
-    # variance more than CUMULATIVE_GAP above the sequence oracle's
+    # squared error more than CUMULATIVE_GAP above the sequence oracle's
     gap = oracle_ratio > CUMULATIVE_GAP
     var_ratio = np.array([r["cum_var"]["sequence"] / r["cum_var"]["greedy"] for r in results])
     return {
