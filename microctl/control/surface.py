@@ -91,13 +91,18 @@ class EAFMSurface:
         U = U.copy()
         done = 1e-11 * max(1.0, abs(target))
         for k in range(self.settings.newton_steps):
-            t, dt = at_start if k == 0 and at_start is not None else self.eafm.mean_and_grad_u(s, U)
+            if k == 0 and at_start is not None:
+                t, dt = at_start
+            else:  # the gradient only where a step is taken (the last evaluation is a check)
+                t, grad = self.eafm.mean_lazy_grad_u(s, U)
             if np.all(np.abs(t - target) <= done):
                 return U, np.abs(t - target)
+            if not (k == 0 and at_start is not None):
+                dt = grad()
             slope = dt @ dirn
             slope = np.where(np.abs(slope) > 1e-12, slope, 1e-12)
             U += ((target - t) / slope)[:, None] * dirn[None, :]
-        t, _ = self.eafm.mean_and_grad_u(s, U)
+        t, _ = self.eafm.mean_lazy_grad_u(s, U)
         return U, np.abs(t - target)
 
     def on_surface(self, s: np.ndarray, target: float, grid: int) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
@@ -129,9 +134,9 @@ class EAFMSurface:
 
     def refine(self, s: np.ndarray, u: np.ndarray, target: float) -> np.ndarray | None:
         """Check (and if needed Newton-correct along w) the constraint residual and ranges."""
-        t, dt = self.eafm.mean_and_grad_u(s, u[None, :])
+        t, grad = self.eafm.mean_lazy_grad_u(s, u[None, :])
         if abs(t[0] - target) > self.settings.constraint_tol:
-            U, res = self.newton(s, u[None, :], target, at_start=(t, dt))
+            U, res = self.newton(s, u[None, :], target, at_start=(t, grad()))
             if res[0] > self.settings.constraint_tol:
                 return None
             u = U[0]

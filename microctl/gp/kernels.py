@@ -90,12 +90,13 @@ def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: 
 
 @dataclass(frozen=True)
 class CrossTerms:
-    """The training side of :meth:`Kernel.cross_grad`: inputs X (n, d) and weights (n,), the
-    scaled inputs Z = X / l (n, d) and their squared norms (n,), and the bias, linear (d,) and
+    """The training side of :meth:`Kernel.cross_grad`: inputs X (n, d), weights (n,) and their
+    product ``weights[:, None] * X`` (n, d), the scaled inputs Z = X / l (n, d) and their squared norms (n,), and the bias, linear (d,) and
     trend (t,) parts' sums over the weights (None where the kernel has no such part)."""
 
     X: np.ndarray
     weights: np.ndarray
+    WX: np.ndarray
     inv_ls: np.ndarray
     Z: np.ndarray
     z2: np.ndarray
@@ -320,7 +321,7 @@ class Kernel:
         Z = X * inv_ls
         v = self.linear_vars
         return CrossTerms(
-            X=X, weights=weights, inv_ls=inv_ls, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
+            X=X, weights=weights, WX=weights[:, None] * X, inv_ls=inv_ls, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
             bias=self.bias_var * float(np.sum(weights)),
             linear=None if v is None else (X * v).T @ weights,
             trend=None if self.trend is None else self.trend.var * (self.trend.values(X).T @ weights))
@@ -342,26 +343,38 @@ class Kernel:
         grad : ndarray, shape (m, d')
             Zero in the columns beyond the kernel's d.
         """
+        value, se = self.cross_value(Xs, terms)
+        return value, self.cross_gradient(Xs, terms, se)
+
+    def cross_value(self, Xs: np.ndarray, terms: CrossTerms) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`cross_grad`'s value alone, and the SE part ``k_se(Xs, X)`` (m, n) that
+        :meth:`cross_gradient` reads (so a caller that needs the gradient only sometimes, a
+        Newton step's convergence check, pays for the (m, n) kernel once)."""
+        Xs = self._cols(Xs)
+        K = _se_scaled(Xs * terms.inv_ls, terms.Z, terms.z2, self.log_signal_var)  # the SE part, training side precomputed
+        value = K @ terms.weights + terms.bias
+        if terms.linear is not None:
+            value = value + Xs @ terms.linear
+        if terms.trend is not None:  # v_t phi(xs) . (Phi(X)^T w)
+            value = value + self.trend.values(Xs) @ terms.trend
+        return value, K
+
+    def cross_gradient(self, Xs: np.ndarray, terms: CrossTerms, se: np.ndarray) -> np.ndarray:
+        """:meth:`cross_grad`'s gradient, shape (m, d'), from ``se`` = :meth:`cross_value`'s SE part."""
         width = np.asarray(Xs).shape[1]
         Xs = self._cols(Xs)
         inv_ls = terms.inv_ls
-        K = _se_scaled(Xs * inv_ls, terms.Z, terms.z2, self.log_signal_var)  # the SE part, training side precomputed
-        A = K * terms.weights[None, :]
-        a = A.sum(axis=1)
-        # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2
-        grad = -(a[:, None] * Xs - A @ terms.X) * inv_ls * inv_ls
-        value = a + terms.bias
+        # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2: sum_i w_i k_i (X_i - x) = K (w X) - (K w) x
+        grad = (se @ terms.WX - (se @ terms.weights)[:, None] * Xs) * (inv_ls * inv_ls)
         if terms.linear is not None:
-            value = value + Xs @ terms.linear
             grad = grad + terms.linear[None, :]
-        if terms.trend is not None:  # v_t phi(xs) . (Phi(X)^T w) and its chain rule through phi
-            value = value + self.trend.values(Xs) @ terms.trend
+        if terms.trend is not None:  # the chain rule through phi
             grad = grad + np.einsum("j,mjk->mk", terms.trend, self.trend.gradients(Xs))
         if self.input_map is not None:  # d/dx of k(M x): the chain rule through the map
             grad = grad @ np.asarray(self.input_map, dtype=float)
         if width > grad.shape[1]:
             grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
-        return value, grad
+        return grad
 
     # ---- the feature form (the posterior's low-rank variance of f) -----------------
     # The SE part factors as sf2 a(z) a(z') exp(z . z') with z = x / l and a(z) = exp(-|z|^2 / 2),

@@ -20,7 +20,7 @@ part is off: :class:`Posterior`).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -207,12 +207,22 @@ class Posterior:
     # ---- NumPy: vectorised forms (original units of y) -------------------------------------
     def f_mean_and_grad(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean of f, shape (m,), and its gradient in the original inputs, shape (m, d)."""
+        f, grad = self.f_mean_lazy_grad(xs)
+        return f, grad()
+
+    def f_mean_lazy_grad(self, xs: np.ndarray) -> tuple[np.ndarray, Callable[[], np.ndarray]]:
+        """Mean of f, shape (m,), and a function returning its gradient in the original inputs,
+        shape (m, d), from the kernel rows the mean computed (the same numbers as
+        :meth:`f_mean_and_grad`; a caller that needs the gradient only sometimes skips its work)."""
         if self._f_cross is None:  # the training side, computed once (Kernel.cross_terms)
             self._f_cross = self.f_kernel.cross_terms(self.X, np.asarray(self.f_alpha))
-        a, da = self.f_kernel.cross_grad(xs, self._f_cross)
+        terms = self._f_cross
+        a, se = self.f_kernel.cross_value(xs, terms)
         f = self.y_mean + self.y_scale * a
-        dx = self.y_scale * da / self.x_scale
-        return f, dx
+
+        def grad() -> np.ndarray:
+            return self.y_scale * self.f_kernel.cross_gradient(xs, terms, se) / self.x_scale
+        return f, grad
 
     def g_kernel_rows(self, xs: np.ndarray) -> np.ndarray:
         """``k_g(xs, X)``, shape (m, n)."""

@@ -32,7 +32,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -352,12 +352,21 @@ class EAFM:
         t_mean : ndarray, shape (m,)
         dt_du : ndarray, shape (m, n_p)
         """
+        t, grad = self.mean_lazy_grad_u(s, U)
+        return t, grad()
+
+    def mean_lazy_grad_u(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, Callable[[], np.ndarray]]:
+        """:meth:`mean_and_grad_u` with the gradient computed only when asked for: ``t_mean``,
+        shape (m,), and a function returning ``dt_du``, shape (m, n_p) (the same numbers; the
+        kernel rows are computed once, a Newton step's convergence check skips the gradient)."""
         X = self._x(s, U)
-        f, dx = self.posterior.f_mean_and_grad(self.posterior.standardise(X))
+        f, dfx = self.posterior.f_mean_lazy_grad(self.posterior.standardise(X))
         d = U @ self.afm.w_pred
         t = self.afm.sensor.forward(d) + f  # eq. 13: the gauge reading of the tool displacement
-        dt = self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dx[:, self.n_s:self.n_x]
-        return t, dt
+
+        def grad() -> np.ndarray:
+            return self.afm.sensor.derivative(d)[:, None] * self.afm.w_pred[None, :] + dfx()[:, self.n_s:self.n_x]
+        return t, grad
 
     # ---- g's posterior (notes/vhgpr.md, prediction): thin calls of the model's Posterior ----
     def _xs(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
