@@ -44,7 +44,7 @@ import numpy as np
 
 from microctl.gp.trend import FeatureTrend
 
-__all__ = ["KernelSpec", "Kernel", "CrossTerms", "se_matrix", "ard_se"]
+__all__ = ["KernelSpec", "Kernel", "CrossTerms", "RowsSide", "se_matrix", "ard_se"]
 
 
 def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_signal_var: float,
@@ -102,6 +102,18 @@ class CrossTerms:
     z2: np.ndarray
     bias: float
     linear: np.ndarray | None
+    trend: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class RowsSide:
+    """What :meth:`Kernel.matrix` reads of its second argument Xb: the kernel's inputs X (n, d),
+    the scaled inputs Z = X / l (n, d), their squared norms (n,) and the trend's features of Xb
+    (n, t; None without a trend). A posterior's training inputs do not change: computed once."""
+
+    X: np.ndarray
+    Z: np.ndarray
+    z2: np.ndarray
     trend: np.ndarray | None
 
 
@@ -255,17 +267,33 @@ class Kernel:
         """The SE part alone, shape (m, n)."""
         return se_matrix(self._cols(Xa), self._cols(Xb), self.log_lengthscales, self.log_signal_var)
 
-    def matrix(self, Xa: np.ndarray, Xb: np.ndarray, se: np.ndarray | None = None) -> np.ndarray:
-        """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed."""
-        K = self.se(Xa, Xb) if se is None else se.copy()
+    def matrix(self, Xa: np.ndarray, Xb: np.ndarray, se: np.ndarray | None = None,
+               side: RowsSide | None = None) -> np.ndarray:
+        """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed, ``side`` =
+        :meth:`rows_side` of Xb what is read of Xb (computed once for fixed training inputs; the
+        same numbers)."""
+        if se is not None:
+            K = se.copy()
+        elif side is None:
+            K = self.se(Xa, Xb)
+        else:
+            inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+            K = _se_scaled(self._cols(Xa) * inv_ls, side.Z, side.z2, self.log_signal_var)
         if self.log_bias_var is not None:
             K += self.bias_var
         v = self.linear_vars
         if v is not None:
-            K += (self._cols(Xa) * v) @ self._cols(Xb).T
+            K += (self._cols(Xa) * v) @ (self._cols(Xb) if side is None else side.X).T
         if self.trend is not None:
-            K += (self.trend.var * self.trend.values(Xa)) @ self.trend.values(Xb).T
+            K += (self.trend.var * self.trend.values(Xa)) @ (self.trend.values(Xb) if side is None else side.trend).T
         return K
+
+    def rows_side(self, Xb: np.ndarray) -> RowsSide:
+        """What :meth:`matrix` reads of its second argument Xb (n, d'), for ``side=``."""
+        X = self._cols(Xb)
+        Z = X * np.exp(-np.asarray(self.log_lengthscales, dtype=float))
+        return RowsSide(X=X, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
+                        trend=None if self.trend is None else self.trend.values(Xb))
 
     def diag(self, X: np.ndarray) -> np.ndarray:
         """k(x, x) at the rows of X, shape (m,)."""
@@ -413,11 +441,21 @@ class Kernel:
             cols.append(self.trend.values(X))
         return np.hstack(cols)
 
-    def se_remainder(self, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
-        """e(Xa, Xb) of the feature form, shape (m, n), from ``expm1`` (no cancellation)."""
+    def se_remainder(self, Xa: np.ndarray, Xb: np.ndarray,
+                     side_b: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """e(Xa, Xb) of the feature form, shape (m, n), from ``expm1`` (no cancellation).
+
+        ``side_b``: :meth:`se_remainder_side` of Xb when the caller holds it (fixed training
+        inputs: computed once); Xb is then not read.
+        """
         Za, za2 = self._z2(Xa)
-        Zb, zb2 = self._z2(Xb)
-        return self.signal_var * np.exp(-0.5 * za2)[:, None] * np.exp(-0.5 * zb2)[None, :] * np.expm1(Za @ Zb.T)
+        Zb, ab = self.se_remainder_side(Xb) if side_b is None else side_b
+        return self.signal_var * np.exp(-0.5 * za2)[:, None] * ab[None, :] * np.expm1(Za @ Zb.T)
+
+    def se_remainder_side(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`se_remainder` reads of one side X (n, d): Z = X / l (n, d) and exp(-|z|^2 / 2) (n,)."""
+        Z, z2 = self._z2(X)
+        return Z, np.exp(-0.5 * z2)
 
     def se_remainder_diag(self, X: np.ndarray) -> np.ndarray:
         """e(x, x) = sf2 (1 - exp(-|z|^2)) at the rows of X, shape (m,)."""

@@ -126,6 +126,7 @@ class Posterior:
         self.f_low_rank = (f_form == "features" or (
             f_form == "auto" and bool(np.max(self.f_kernel.se_remainder_diag(self.X)) <= F_SE_REMAINDER_NEGLIGIBLE)))
         self._f_lr: dict[str, np.ndarray] = {}
+        self._rows_sides: dict[str, Any] = {}  # train_rows: what each kernel reads of X, computed once
 
     def chol_inverse(self, which: str) -> np.ndarray:
         """``L^-1`` of f's (``"f"``) or g's (``"g"``) Cholesky factor, shape (n, n), computed once:
@@ -153,8 +154,8 @@ class Posterior:
         chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
         for start in range(0, m, chunk):
             sl = slice(start, min(m, start + chunk))
-            Kf = kf.matrix(xs[sl], self.X)
-            Kg = kg.matrix(xs[sl], self.X)
+            Kf = self.train_rows("f", xs[sl])
+            Kg = self.train_rows("g", xs[sl])
             # [N prediction] a* = k_f*^T (K_f + R)^-1 y,  c*^2 = k_f** - ||f_chol^-1 k_f*||^2
             a[sl] = Kf @ self.f_alpha
             c2[sl] = self._f_var_from(xs[sl], Kf)
@@ -170,13 +171,15 @@ class Posterior:
 
     def f_low_rank_terms(self) -> dict[str, np.ndarray]:
         """The precomputed matrices of f's variance in the feature form (class docstring),
-        computed once: ``M = G^T G`` (p, p) and ``H = G^T L_f^-1`` (p, n)."""
+        computed once: ``M = G^T G`` (p, p), ``H = G^T L_f^-1`` (p, n), and the training side of the
+        remainder e (:meth:`Kernel.se_remainder_side`: ``Z`` (n, d), ``a`` (n,))."""
         if not self._f_lr:
             Linv = self.chol_inverse("f")
             kf = self.f_kernel
             G = Linv @ (kf.features(self.X) * kf.feature_weights)
             H = G.T @ Linv
-            self._f_lr = {"M": G.T @ G, "H": np.ascontiguousarray(H)}
+            Z, a = kf.se_remainder_side(self.X)  # the training side of e(x*, X), read by every call
+            self._f_lr = {"M": G.T @ G, "H": np.ascontiguousarray(H), "Z": Z, "a": a}
             for a in self._f_lr.values():
                 freeze(a)
         return self._f_lr
@@ -188,7 +191,7 @@ class Posterior:
             t = self.f_low_rank_terms()
             kf = self.f_kernel
             psi = kf.features(xs)
-            E = kf.se_remainder(xs, self.X)
+            E = kf.se_remainder(xs, self.X, side_b=(t["Z"], t["a"]))
             return kf.diag(xs) - np.einsum("ij,ij->i", psi, psi @ t["M"] + 2.0 * (E @ t["H"].T))
         v = self.chol_inverse("f") @ Kf.T
         return self.f_kernel.diag(xs) - np.einsum("ij,ij->j", v, v)
@@ -201,7 +204,7 @@ class Posterior:
         chunk = max(1, 4_000_000 // max(1, self.X.shape[0]))
         for start in range(0, m, chunk):
             sl = slice(start, min(m, start + chunk))
-            c2[sl] = self._f_var_from(xs[sl], None if self.f_low_rank else self.f_kernel.matrix(xs[sl], self.X))
+            c2[sl] = self._f_var_from(xs[sl], None if self.f_low_rank else self.train_rows("f", xs[sl]))
         return c2
 
     # ---- NumPy: vectorised forms (original units of y) -------------------------------------
@@ -224,9 +227,18 @@ class Posterior:
             return self.y_scale * self.f_kernel.cross_gradient(xs, terms, se) / self.x_scale
         return f, grad
 
+    def train_rows(self, which: str, xs: np.ndarray) -> np.ndarray:
+        """``k(xs, X)`` of f's (``"f"``) or g's (``"g"``) kernel against the training inputs, shape
+        (m, n): :meth:`Kernel.matrix` with what it reads of X computed once (the same numbers)."""
+        side = self._rows_sides.get(which)
+        kernel = self.f_kernel if which == "f" else self.g_kernel
+        if side is None:
+            side = self._rows_sides[which] = kernel.rows_side(self.X)
+        return kernel.matrix(xs, self.X, side=side)
+
     def g_kernel_rows(self, xs: np.ndarray) -> np.ndarray:
         """``k_g(xs, X)``, shape (m, n)."""
-        return self.g_kernel.matrix(xs, self.X)
+        return self.train_rows("g", xs)
 
     def g_mean(self, xs: np.ndarray, Kg: np.ndarray) -> np.ndarray:
         """g's posterior mean (log µm² of y), shape (m,), from ``Kg = k_g(xs, X)``."""
@@ -237,14 +249,14 @@ class Posterior:
         negligible (O(m)), shape (m,); ``Kg = k_g(xs, X)`` when the caller has it."""
         if self.g_gp_var_negligible:
             return self.g_kernel.diag(xs)
-        Kg = self.g_kernel.matrix(xs, self.X) if Kg is None else Kg
+        Kg = self.train_rows("g", xs) if Kg is None else Kg
         v = self.chol_inverse("g") @ Kg.T
         return np.maximum(self.g_kernel.diag(xs) - np.einsum("ij,ij->j", v, v), 0.0)
 
     def g_mean_var(self, xs: np.ndarray, *, with_gp_var: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance of g, shapes (m,), (m,); without the GP's O(m n^2) variance term
         unless ``with_gp_var`` (or it is negligible, then its O(m) bound)."""
-        Kg = self.g_kernel.matrix(xs, self.X)
+        Kg = self.train_rows("g", xs)
         var = self.prior.variance(xs)
         if self.g_gp_var_negligible or with_gp_var:
             var = var + self.g_gp_var(xs, Kg)
@@ -257,7 +269,7 @@ class Posterior:
     def g_joint(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint posterior of g at the rows of xs: mean (m,), covariance (m, m), with the prior
         mean's parameter covariance whether or not the model propagates it."""
-        Kg = self.g_kernel.matrix(xs, self.X)
+        Kg = self.train_rows("g", xs)
         mean = self.g_mean(xs, Kg)
         cov = self.g_kernel.matrix(xs, xs) + self.prior_evidence.covariance(xs, xs)
         if not self.g_gp_var_negligible:  # else the prior covariance (its bound on the diagonal)
