@@ -1,0 +1,63 @@
+"""What the posterior computes once of its training inputs gives the same numbers, to the last bit,
+as computing it per call: ``Kernel.matrix(xs, X, side=rows_side(X))`` against ``matrix(xs, X)``,
+``se_remainder(xs, X, side_b=se_remainder_side(X))`` against ``se_remainder(xs, X)``, and
+``cross_value`` / ``cross_gradient`` (the value and the gradient apart, for a Newton step's check)
+against an independent sum over the training rows of ``k(x, X_i) w_i`` and its finite differences."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from microctl.gp.kernels import Kernel
+from microctl.gp.shaped_features import ShapedFeatures
+from microctl.gp.trend import FeatureTrend
+
+
+def _kernels(rng: np.random.Generator, d: int) -> dict[str, Kernel]:
+    trend = FeatureTrend(ShapedFeatures(rng.normal(size=(2, d)), rng.normal(size=2), ("sq", "abs"),
+                                        np.array([[1.0, 1.0], [0.7, 1.0]]), np.array([1.3, 0.8]), ("a", "b")), 0.4)
+    ls = rng.uniform(-0.5, 0.5, d)
+    return {
+        "se only": Kernel(ls, 0.3),
+        "bias + linear + trend": Kernel(ls, -1.0, 0.5, rng.uniform(-2, 1, d), trend=trend),
+        "input map + linear": Kernel(ls[:2], 0.0, None, np.array([0.2, -0.3]), input_map=rng.normal(size=(2, d))),
+    }
+
+
+def test_cached_training_sides_give_the_same_numbers():
+    rng = np.random.default_rng(3)
+    d = 4
+    X = rng.normal(size=(40, d + 1))  # a column beyond the kernel's inputs, as a posterior's context
+    for name, k in _kernels(rng, d).items():
+        side = k.rows_side(X)
+        rem_side = k.se_remainder_side(X)
+        for m in (1, 7):
+            xs = rng.normal(size=(m, d + 1))
+            assert np.array_equal(k.matrix(xs, X, side=side), k.matrix(xs, X)), name
+            assert np.array_equal(k.se_remainder(xs, X, side_b=rem_side), k.se_remainder(xs, X)), name
+
+
+def test_value_and_gradient_apart_match_a_plain_sum_and_central_differences():
+    """The value equals ``sum_i k(x, X_i) w_i`` from ``Kernel.matrix`` (1e-12 relative: another
+    summation order); the gradient equals central differences of that sum (step 1e-6: the error
+    is O(h^2) ~ 1e-12 of the curvature, plus round-off ~ 1e-16 / 1e-6; 1e-7 relative)."""
+    rng = np.random.default_rng(4)
+    d = 4
+    X = rng.normal(size=(30, d))
+    w = rng.normal(size=30)
+    h = 1e-6
+    for name, k in _kernels(rng, d).items():
+        terms = k.cross_terms(X, w)
+        xs = rng.normal(size=(5, d))
+        value, se = k.cross_value(xs, terms)
+        grad = k.cross_gradient(xs, terms, se)
+        plain = k.matrix(xs, X) @ w
+        np.testing.assert_allclose(value, plain, rtol=1e-12, atol=1e-12 * np.max(np.abs(plain)), err_msg=name)
+        fd = np.empty_like(grad)
+        for j in range(d):
+            e = np.zeros(d)
+            e[j] = h
+            fd[:, j] = (k.matrix(xs + e, X) @ w - k.matrix(xs - e, X) @ w) / (2 * h)
+        np.testing.assert_allclose(grad, fd, rtol=1e-7, atol=1e-7 * np.max(np.abs(fd)), err_msg=name)
+        v2, g2 = k.cross_grad(xs, terms)
+        assert np.array_equal(v2, value) and np.array_equal(g2, grad), name
