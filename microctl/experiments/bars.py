@@ -175,9 +175,12 @@ def _absolute(ab: dict) -> dict:
     perfect = truth.get("truth_pe_below_afm_points")
     if perfect is not None:
         measured += f"; the true mean's own PE below the AFM's at {perfect}/{n}"
+    calibrated = (ab.get("bias_vs_truth") or {}).get("calibrated_below_afm_points")
+    expect = ("" if calibrated is None else
+              f"; a mean as uncertain as the EAFM's bias std says: {calibrated:.1f}/{n} expected")
     return {"passed": bool(k / n >= PE_SHARE and p is not None and p < PE_P),
             "detail": f"EAFM mean prediction nearer the true mean than the AFM's at {k}/{n} points "
-                      f"(>= {PE_SHARE:.0%}), paired t-test p = {_p(p)} (< {PE_P:g}); measured: {measured}"}
+                      f"(>= {PE_SHARE:.0%}), paired t-test p = {_p(p)} (< {PE_P:g}){expect}; measured: {measured}"}
 
 
 def _p(p: float | None) -> str:

@@ -172,6 +172,40 @@ def mean_errors_vs_truth(true_mean_um: np.ndarray, afm_um: np.ndarray,
             np.abs(tm - np.asarray(model_um, dtype=float)).mean(axis=0))
 
 
+#: Draws and seed of :func:`calibrated_below_afm` (fixed: the same results give the same count;
+#: the standard error of a point's probability is <= 0.5 / sqrt(draws) = 0.008).
+CALIBRATED_DRAWS, CALIBRATED_SEED = 4000, 20_261_202
+
+
+def calibrated_below_afm(true_mean_um: np.ndarray, afm_um: np.ndarray, bias_std_um: np.ndarray) -> float:
+    """How many points the ``absolute_pe`` bar could expect to count for a mean prediction whose
+    errors from the true mean were exactly as wide as its predicted bias uncertainty says.
+
+    Each move's error is drawn from N(0, bias_std^2) (independent), averaged over a point's
+    trials as the bar averages them (:func:`mean_errors_vs_truth`), and compared with the AFM's
+    error there; the count is the sum over the points of that probability (Monte Carlo with
+    :data:`CALIBRATED_DRAWS` fixed draws). Below the bar's share it says that the bar asks for
+    a smaller uncertainty of f than the model has (more data or a better-shaped mean), not that
+    f misstates its uncertainty; the bar itself is not changed by it.
+
+    Parameters
+    ----------
+    true_mean_um, bias_std_um : ndarray, shape (trials, points)
+    afm_um : ndarray, shape (points,)
+
+    Returns
+    -------
+    float
+        Expected number of points, in [0, points].
+    """
+    tm = np.asarray(true_mean_um, dtype=float)
+    s = np.asarray(bias_std_um, dtype=float)
+    err_afm = np.abs(tm - np.asarray(afm_um, dtype=float)[None, :]).mean(axis=0)
+    z = np.random.default_rng(CALIBRATED_SEED).standard_normal((CALIBRATED_DRAWS,) + tm.shape)
+    err = np.abs(z * s[None, :, :]).mean(axis=1)  # (draws, points)
+    return float(np.mean(err < err_afm[None, :], axis=0).sum())
+
+
 def absolute_stats(ab: dict) -> dict:
     """PE per point, the tests, and the 2σ coverage (see the module docstring)."""
     meas = ab["measured_um"]  # (trials, points)
@@ -216,7 +250,8 @@ def absolute_stats(ab: dict) -> dict:
         if bias is not None:  # is the predicted uncertainty of the mean (f's std) its actual error's size?
             dev = np.abs(ab["eafm_mean_um"] - tm)
             out["bias_vs_truth"] = {"within_2sigma": float(np.mean(dev <= 2 * bias)),
-                                    "median_error_over_std": float(np.median(dev / np.maximum(bias, 1e-12)))}
+                                    "median_error_over_std": float(np.median(dev / np.maximum(bias, 1e-12))),
+                                    "calibrated_below_afm_points": calibrated_below_afm(tm, ab["afm_um"], bias)}
     return out
 
 
@@ -483,7 +518,10 @@ def absolute_section(results: dict, level: int = 2) -> list[str]:
         L.append(f"- the EAFM's predicted bias uncertainty (f's std) against its error from the true mean: "
                  f"the true mean inside the ±2 std band at {100 * bt['within_2sigma']:.1f} % of the moves "
                  f"(95.4 % for a calibrated f), median error / std {_g(bt['median_error_over_std'])} "
-                 f"(0.67 for a calibrated f)")
+                 f"(0.67 for a calibrated f)"
+                 + (f"; a mean whose errors were as wide as that std says would be nearer the true mean than "
+                    f"the AFM's at {bt['calibrated_below_afm_points']:.1f} of {ab['points']} points (expected)"
+                    if "calibrated_below_afm_points" in bt else ""))
     return L + [""]
 
 

@@ -15,6 +15,7 @@ from microctl.cli import main
 from microctl.errors import BackendError, ConfigError
 from microctl.experiments.config import load_experiment_config
 from microctl.experiments.runner import run_experiment
+from microctl.experiments.report import calibrated_below_afm
 from microctl.measurement.log import read_log
 from microctl.stage.config import load_stage_config
 
@@ -151,6 +152,8 @@ def test_bias_uncertainty_against_the_truth(quick_run):
     dev = np.abs(mean - tm)
     assert ab["bias_vs_truth"]["within_2sigma"] == pytest.approx(np.count_nonzero(dev <= 2 * bias) / dev.size)
     assert ab["bias_vs_truth"]["median_error_over_std"] == pytest.approx(np.median(dev / bias))
+    expected = ab["bias_vs_truth"]["calibrated_below_afm_points"]
+    assert expected == calibrated_below_afm(tm, ab["afm_um"], bias) and 0 <= expected <= ab["points"]
     assert "predicted bias uncertainty (f's std)" in (out / "report.md").read_text()
 
 
