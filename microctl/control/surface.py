@@ -92,12 +92,12 @@ class EAFMSurface:
         done = 1e-11 * max(1.0, abs(target))
         for k in range(self.settings.newton_steps):
             if k == 0 and at_start is not None:
-                t, dt = at_start
+                (t, dt), grad = at_start, None
             else:  # the gradient only where a step is taken (the last evaluation is a check)
                 t, grad = self.eafm.mean_lazy_grad_u(s, U)
             if np.all(np.abs(t - target) <= done):
                 return U, np.abs(t - target)
-            if not (k == 0 and at_start is not None):
+            if grad is not None:
                 dt = grad()
             slope = dt @ dirn
             slope = np.where(np.abs(slope) > 1e-12, slope, 1e-12)

@@ -178,8 +178,8 @@ class Posterior:
             kf = self.f_kernel
             G = Linv @ (kf.features(self.X) * kf.feature_weights)
             H = G.T @ Linv
-            Z, a = kf.se_remainder_side(self.X)  # the training side of e(x*, X), read by every call
-            self._f_lr = {"M": G.T @ G, "H": np.ascontiguousarray(H), "Z": Z, "a": a}
+            Z, az = kf.se_remainder_side(self.X)  # the training side of e(x*, X), read by every call
+            self._f_lr = {"M": G.T @ G, "H": np.ascontiguousarray(H), "Z": Z, "a": az}
             for a in self._f_lr.values():
                 freeze(a)
         return self._f_lr
