@@ -12,23 +12,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from microctl.gp.kernels import Kernel
+from kernel_checks import kernel_family
+
 from microctl.gp.posterior import F_SE_REMAINDER_NEGLIGIBLE, Posterior
-from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.trainer import VHGPR
-from microctl.gp.trend import FeatureTrend
-
-
-def _kernels(rng: np.random.Generator, d: int) -> dict[str, Kernel]:
-    trend = FeatureTrend(ShapedFeatures(rng.normal(size=(2, d)), rng.normal(size=2), ("sq", "abs"),
-                                        np.array([[1.0, 1.0], [0.7, 1.0]]), np.array([1.3, 0.8]), ("a", "b")), 0.4)
-    ls = rng.uniform(-0.5, 0.5, d)
-    return {
-        "se only, short": Kernel(ls, 0.3),
-        "bias + linear, se at its floor": Kernel(np.full(d, 6.0), -12.0, 1.0, rng.uniform(-2, 1, d)),
-        "bias + linear + trend, se on": Kernel(ls, -1.0, 0.5, rng.uniform(-2, 1, d), trend=trend),
-        "input map + linear": Kernel(ls[:2], 0.0, None, np.array([0.2, -0.3]), input_map=rng.normal(size=(2, d))),
-    }
 
 
 def test_feature_form_rebuilds_the_kernel_and_its_remainder_is_psd():
@@ -40,7 +27,7 @@ def test_feature_form_rebuilds_the_kernel_and_its_remainder_is_psd():
     d = 4
     Xa, Xb = rng.normal(size=(9, d)), rng.normal(size=(30, d))
     x = ca.MX.sym("x", d)
-    for name, k in _kernels(rng, d).items():
+    for name, k in kernel_family(rng, d).items():
         K = k.matrix(Xa, Xb)
         form = (k.features(Xa) * k.feature_weights) @ k.features(Xb).T + k.se_remainder(Xa, Xb)
         scale = float(np.max(np.abs(K)))

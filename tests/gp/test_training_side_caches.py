@@ -7,28 +7,14 @@ against an independent sum over the training rows of ``k(x, X_i) w_i`` and its f
 from __future__ import annotations
 
 import numpy as np
-
-from microctl.gp.kernels import Kernel
-from microctl.gp.shaped_features import ShapedFeatures
-from microctl.gp.trend import FeatureTrend
-
-
-def _kernels(rng: np.random.Generator, d: int) -> dict[str, Kernel]:
-    trend = FeatureTrend(ShapedFeatures(rng.normal(size=(2, d)), rng.normal(size=2), ("sq", "abs"),
-                                        np.array([[1.0, 1.0], [0.7, 1.0]]), np.array([1.3, 0.8]), ("a", "b")), 0.4)
-    ls = rng.uniform(-0.5, 0.5, d)
-    return {
-        "se only": Kernel(ls, 0.3),
-        "bias + linear + trend": Kernel(ls, -1.0, 0.5, rng.uniform(-2, 1, d), trend=trend),
-        "input map + linear": Kernel(ls[:2], 0.0, None, np.array([0.2, -0.3]), input_map=rng.normal(size=(2, d))),
-    }
+from kernel_checks import kernel_family
 
 
 def test_cached_training_sides_give_the_same_numbers():
     rng = np.random.default_rng(3)
     d = 4
     X = rng.normal(size=(40, d + 1))  # a column beyond the kernel's inputs, as a posterior's context
-    for name, k in _kernels(rng, d).items():
+    for name, k in kernel_family(rng, d).items():
         side = k.rows_side(X)
         rem_side = k.se_remainder_side(X)
         for m in (1, 7):
@@ -46,7 +32,7 @@ def test_value_and_gradient_apart_match_a_plain_sum_and_central_differences():
     X = rng.normal(size=(30, d))
     w = rng.normal(size=30)
     h = 1e-6
-    for name, k in _kernels(rng, d).items():
+    for name, k in kernel_family(rng, d).items():
         terms = k.cross_terms(X, w)
         xs = rng.normal(size=(5, d))
         value, se = k.cross_value(xs, terms)
