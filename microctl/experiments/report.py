@@ -184,9 +184,10 @@ def calibrated_below_afm(true_mean_um: np.ndarray, afm_um: np.ndarray, bias_std_
     Each move's error is drawn from N(0, bias_std^2) (independent), averaged over a point's
     trials as the bar averages them (:func:`mean_errors_vs_truth`), and compared with the AFM's
     error there; the count is the sum over the points of that probability (Monte Carlo with
-    :data:`CALIBRATED_DRAWS` fixed draws). Below the bar's share it says that the bar asks for
-    a smaller uncertainty of f than the model has (more data or a better-shaped mean), not that
-    f misstates its uncertainty; the bar itself is not changed by it.
+    :data:`CALIBRATED_DRAWS` fixed draws). Below the bar's share, even a mean that states its
+    uncertainty correctly could not be expected to pass: the bar asks for a smaller uncertainty
+    of f than the model has (more data or a better-shaped mean). At or above it while the
+    measured count is below, f understates its uncertainty. The bar itself is not changed by it.
 
     Parameters
     ----------

@@ -91,8 +91,9 @@ def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: 
 @dataclass(frozen=True)
 class CrossTerms:
     """The training side of :meth:`Kernel.cross_grad`: inputs X (n, d), weights (n,) and their
-    product ``weights[:, None] * X`` (n, d), the scaled inputs Z = X / l (n, d) and their squared norms (n,), and the bias, linear (d,) and
-    trend (t,) parts' sums over the weights (None where the kernel has no such part)."""
+    product ``weights[:, None] * X`` (n, d), the scaled inputs Z = X / l (n, d) and their squared
+    norms (n,), and the bias, linear (d,) and trend (t,) parts' sums over the weights (None where
+    the kernel has no such part)."""
 
     X: np.ndarray
     weights: np.ndarray
@@ -269,9 +270,9 @@ class Kernel:
 
     def matrix(self, Xa: np.ndarray, Xb: np.ndarray, se: np.ndarray | None = None,
                side: RowsSide | None = None) -> np.ndarray:
-        """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed, ``side`` =
-        :meth:`rows_side` of Xb what is read of Xb (computed once for fixed training inputs; the
-        same numbers)."""
+        """k(Xa, Xb), shape (m, n); ``se`` reuses an SE part already computed; ``side``, the
+        :meth:`rows_side` of Xb, stands for what is read of Xb (computed once for fixed training
+        inputs; the same numbers)."""
         if se is not None:
             K = se.copy()
         elif side is None:
