@@ -291,10 +291,8 @@ class Kernel:
 
     def rows_side(self, Xb: np.ndarray) -> RowsSide:
         """What :meth:`matrix` reads of its second argument Xb (n, d'), for ``side=``."""
-        X = self._cols(Xb)
-        Z = X * np.exp(-np.asarray(self.log_lengthscales, dtype=float))
-        return RowsSide(X=X, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
-                        trend=None if self.trend is None else self.trend.values(Xb))
+        Z, z2 = self._z2(Xb)
+        return RowsSide(X=self._cols(Xb), Z=Z, z2=z2, trend=None if self.trend is None else self.trend.values(Xb))
 
     def diag(self, X: np.ndarray) -> np.ndarray:
         """k(x, x) at the rows of X, shape (m,)."""
