@@ -342,13 +342,13 @@ class Kernel:
         X : ndarray, shape (n, d)
         weights : ndarray, shape (n,)
         """
+        Z, z2 = self._z2(X)
         X = self._cols(X)
         weights = np.asarray(weights, dtype=float)
-        inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
-        Z = X * inv_ls
         v = self.linear_vars
         return CrossTerms(
-            X=X, weights=weights, WX=weights[:, None] * X, inv_ls=inv_ls, Z=Z, z2=np.einsum("ij,ij->i", Z, Z),
+            X=X, weights=weights, WX=weights[:, None] * X, Z=Z, z2=z2,
+            inv_ls=np.exp(-np.asarray(self.log_lengthscales, dtype=float)),
             bias=self.bias_var * float(np.sum(weights)),
             linear=None if v is None else (X * v).T @ weights,
             trend=None if self.trend is None else self.trend.var * (self.trend.values(X).T @ weights))
