@@ -20,7 +20,7 @@ from scipy.linalg import lapack
 from microctl.gp.kernels import Kernel, KernelSpec
 from microctl.gp.linalg import LOG_2PI, chol, chol_inverse
 
-__all__ = ["BOUNDS", "Layout", "prior_mean_terms", "mv_bound", "mean_coef_covariance"]
+__all__ = ["BOUNDS", "F_LOG_LENGTHSCALE_MAX", "Layout", "prior_mean_terms", "mv_bound", "mean_coef_covariance"]
 
 # Box bounds of the optimised parameters, in standardised units (inputs and outputs have
 # unit variance), chosen wide enough never to bind on sensible data and narrow enough
@@ -35,6 +35,19 @@ BOUNDS = {
     "log_feature_coef": (-30.0, 5.0),  # c_j of g's parametric prior mean (noise_prior eq. 1)
     "log_noise_var": (-20.0, 2.0),  # homoscedastic initialisation only
 }
+
+#: Upper bound of f's SE log-lengthscales (standardised inputs), below BOUNDS' 6.0. On a
+#: few hundred moves ML-II often drives a lengthscale of f to the wide bound (ell ~ 400 input
+#: standard deviations): along that input the SE part is then a near-constant of large signal
+#: variance, f's posterior variance stops growing away from the data, and f is confidently
+#: wrong where the training moves are thin (the absolute experiment's moves from the zero
+#: state). At ell = e^1.5 ~ 4.5 standard deviations the correlation across the data (about
+#: +-2 sd) is still >= exp(-16 / (2 * 4.5^2)) ~ 0.67, so an input the data do not need stays
+#: nearly ignored, but f keeps an honest variance along it. g (the log-variance) keeps the
+#: wide bound: a flat noise direction is a claim the variational bound can check.
+#: tests/models/test_mean_shift.py checks f's coverage of an independent truth's mean at moves
+#: from the zero state, this bound against the wide one.
+F_LOG_LENGTHSCALE_MAX = 1.5
 
 # --------------------------------------------------------------------------- parameter layout
 
@@ -76,7 +89,8 @@ class Layout:
     def bounds(self) -> list[tuple[float, float]]:
         kb = {k: BOUNDS[v] for k, v in (("ls", "log_lengthscale"), ("sf2", "log_signal_var"),
                                           ("bias", "log_bias_var"), ("linear", "log_linear_var"))}
-        fb = self.f.bounds(**kb, affine=self.linear_bounds)
+        # f's lengthscales capped at F_LOG_LENGTHSCALE_MAX (see there); g keeps BOUNDS'.
+        fb = self.f.bounds(**{**kb, "ls": (kb["ls"][0], F_LOG_LENGTHSCALE_MAX)}, affine=self.linear_bounds)
         if self.se_off:
             ls_hi, sf2_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0]
             fb[: self.f.d + 1] = [(ls_hi, ls_hi)] * self.f.d + [(sf2_lo, sf2_lo)]

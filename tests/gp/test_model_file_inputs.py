@@ -69,7 +69,7 @@ def test_trained_model_loads(model_path):
     ({"meta_json": _meta(training_hash="abc")}, r"training_hash 'abc' is not a SHA-256 hex digest"),
     ({"X": _set("X", (0, 0), 1.7)}, r"the stored arrays do not belong together: column 0 of 'X'"),
     ({"f_alpha": lambda d: d["f_alpha"] * 2}, r"the stored arrays do not belong together: the training outputs they encode"),
-    ({"f_log_lengthscales": lambda d: d["f_log_lengthscales"] + 0.5},
+    ({"f_log_bias_var": lambda d: d["f_log_bias_var"] + 0.5},  # in play whether or not f's SE part is
      r"the stored arrays do not belong together: f_chol is not the factor of the kernel of 'X'"),
     ({"log_lambda": _set("log_lambda", 7, 3.0)}, r"the stored arrays do not belong together: g_chol is not the factor .*Λ⁻¹"),
     ({"X": lambda d: d["X"][::-1].copy()}, r"the stored arrays do not belong together: f_chol is not the factor"),
