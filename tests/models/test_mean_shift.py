@@ -47,6 +47,18 @@ def _true_mean(truth, q, draws=4000, seed=0):
     return float(np.mean(ind.gauge(truth, ind.tool_height(truth, ind.platform_pose(truth, Q)) - rest)))
 
 
+def _zero_state_case(tmp_path, stage, truth, seed):
+    """125 covering moves of ``truth`` (seed ``seed``) as the package reads them, and the 20 moves
+    from the zero state the tests score: (data, U (20, n_p), their true mean readings (20,))."""
+    cfg, afm = stage
+    rng = np.random.default_rng(seed)
+    ind.run(truth, training_moves(afm, "covering", 125, seed), rng).write_log(tmp_path / "log.csv")
+    data = residual_dataset(read_log(tmp_path / "log.csv", cfg.stage), afm)
+    geo = ind.load_geometry(PATH)
+    U = ind.random_moves(geo, 20, np.random.default_rng(99))
+    return data, U, np.array([_true_mean(truth, q) for q in geo.commands(U)])
+
+
 @pytest.fixture(scope="module")
 def stage():
     cfg = load_stage_config(PATH)
@@ -61,21 +73,15 @@ def test_the_trend_corrects_the_mean_of_long_noisy_moves_the_plain_model_gets_wr
     stroke: beyond the training moves' steps) the trend's RMS error from the true mean is below
     0.85 of the plain model's (measured 0.5-0.7 on these seeds: the plain model is off by ~4 µm,
     twice the trend's), and the trend reads exactly the ungated selected sources."""
-    cfg, afm = stage
+    afm = stage[1]
     truth = _truth()
-    rng = np.random.default_rng(seed)
-    ind.run(truth, training_moves(afm, "covering", 125, seed), rng).write_log(tmp_path / "log.csv")
-    data = residual_dataset(read_log(tmp_path / "log.csv", cfg.stage), afm)
+    data, U, tm = _zero_state_case(tmp_path, stage, truth, seed)
     on = train_residual_model(data, afm)
     off = train_residual_model(data, afm, ResidualModelSettings(mean_shift=False))
     sel = on.info["noise_selection"]
     assert sel["mean_shift"]["features"] == list(on.f_trend_names) and on.f_trend_names
     assert set(on.f_trend_names) <= set(sel["selected"])
     assert off.f_trend_matrix is None and "mean_shift" not in off.info["noise_selection"]
-    geo = ind.load_geometry(PATH)
-    U = ind.random_moves(geo, 20, np.random.default_rng(99))
-    Q = geo.commands(U)
-    tm = np.array([_true_mean(truth, q) for q in Q])
     s = np.zeros(afm.n_s)
     err = {name: EAFM(afm, m).predict(np.tile(s, (len(U), 1)), U).t_mean - tm for name, m in (("on", on), ("off", off))}
     rms = {k: float(np.sqrt(np.mean(e * e))) for k, e in err.items()}
@@ -127,13 +133,8 @@ def test_f_states_its_uncertainty_at_moves_from_the_zero_state(tmp_path, stage, 
     even with the cap)."""
     import microctl.gp.bound as bound
 
-    cfg, afm = stage
-    truth = _truth()
-    ind.run(truth, training_moves(afm, "covering", 125, seed), np.random.default_rng(seed)).write_log(tmp_path / "log.csv")
-    data = residual_dataset(read_log(tmp_path / "log.csv", cfg.stage), afm)
-    geo = ind.load_geometry(PATH)
-    U = ind.random_moves(geo, 20, np.random.default_rng(99))
-    tm = np.array([_true_mean(truth, q) for q in geo.commands(U)])
+    afm = stage[1]
+    data, U, tm = _zero_state_case(tmp_path, stage, _truth(), seed)
 
     def covered(model):
         p = EAFM(afm, model).predict(np.zeros((len(U), afm.n_s)), U)
