@@ -50,9 +50,15 @@ scatter growing exponentially along a direction of the pose that the data choose
 
 Selection (:func:`select_features`) is forward and evidence-based with a multiple-testing
 discipline: on the residual of the mean correction, r ~ N(0, c_0 + sum_S c_j phi_j(x)) with
-c >= 0 is fitted by maximum likelihood; the candidate that raises the maximised log-likelihood
-most is added while it is significant at family-wise level ``alpha`` over the candidates still
-in play. The candidates are strongly correlated (five shapes of one actuator's step describe
+c >= 0 is fitted by maximum likelihood; among the candidates significant at family-wise level
+``alpha`` over the candidates still in play, the one that raises the maximised log-likelihood
+most beyond the BIC's gain is added, until none is significant. The p-values gate the entry
+(under the current fit the chance that any candidate passes is at most ``alpha``, whichever
+passing one is then taken) but do not rank: they rest on the profiled gains, which hold the
+current sources' proportions and so understate a source that takes over part of the floor (a
+second stiction actuator whose scatter the floor had absorbed, refitted worth twice a false
+source's gain, lost the entry to it by a p-value a thousandth lower when the smaller p-value
+ranked). The candidates are strongly correlated (five shapes of one actuator's step describe
 nearly the same thing), so a Bonferroni correction over their number would be far too strict;
 the family-wise p-value is instead the max-statistic (Westfall-Young) one: each candidate's
 profiled log-likelihood gain (:func:`_profile_gains`) is referred to the distribution of the
@@ -407,14 +413,14 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
     (:func:`_profile_gains`, which the p-values refer to the null; a local score statistic ranks a
     step's saturating shapes far below their gain); the ``refits`` best are fitted by maximum
     likelihood. With ``tilt_inputs`` one more candidate is a source growing exponentially along a
-    direction of those inputs that the fit chooses (:func:`_fit_tilt`; k + 1 parameters). The
-    candidate with the smallest adjusted p-value enters if that is below ``alpha`` (ties: the larger
-    log-likelihood gain): a fixed feature's p-value is the max-statistic one over the candidates in
-    play (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's
-    likelihood-ratio statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over
-    every candidate in play. An entry also needs the BIC's gain (half log n per parameter) and a
-    positive likelihood gain. After the forward pass each selected source's shape is re-chosen
-    among the candidates of its quantity (:func:`_refine_shapes`).
+    direction of those inputs that the fit chooses (:func:`_fit_tilt`; k + 1 parameters). Entry
+    needs an adjusted p-value below ``alpha`` and an exact gain of at least the BIC's (half log n
+    per parameter): a fixed feature's p-value is the max-statistic one over the candidates in play
+    (:func:`_max_stat_pvalues`, times 1.25 while the tilt is in play); the tilt's likelihood-ratio
+    statistic is referred to chi2 with k + 1 degrees of freedom, Bonferroni over every candidate
+    in play. Of those passing, the largest exact gain beyond the BIC's enters (ties: the smaller
+    p-value; the module docstring says why). Then each selected source's shape is re-chosen among
+    the candidates of its quantity (:func:`_refine_shapes`).
 
     Parameters
     ----------
@@ -462,9 +468,10 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
             options.append((p_rest[int(j)] if g > 0 else 1.0, g, 0.5 * math.log(n), int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
             options.append(_tilt_option(r2, ll, Phi[:, chosen], tilt_inputs, m))
-        best = min(options, key=lambda o: (o[0], -o[1])) if options else None
-        if best is None or best[0] >= alpha or best[1] < best[2]:
+        passing = [o for o in options if o[0] < alpha and o[1] >= o[2]]
+        if not passing:
             break
+        best = max(passing, key=lambda o: (o[1] - o[2], -o[0]))  # the exact gain beyond the BIC's ranks
         if best[3] == "tilt":
             tilt = best[5]
         else:

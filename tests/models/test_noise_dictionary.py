@@ -214,6 +214,33 @@ def test_selected_shapes_are_each_the_best_of_their_quantity(afm):
                 assert _fit_variance(r**2, Phi[:, trial])[0] <= ll + REFINE_MIN_GAIN, (seed, sel.names, nm)
 
 
+def test_of_the_significant_candidates_the_largest_exact_gain_enters(monkeypatch):
+    """The p-values gate an entry, the exact refit ranks the passing candidates. Residuals with a
+    floor, a large source on a feature that is on at most rows (the floor absorbs much of it, so
+    its profiled gain understates it) and a smaller one on half of those rows; the p-values are
+    pinned so that both pass and the smaller source's is the lower (as on a stiction rig where a
+    false source's p-value was 0.001 below the true one's). The large source enters first (the
+    earlier rule, the smaller p-value first, took the other), with its exact gain recorded."""
+    rng = np.random.default_rng(0)
+    n = 300
+    on = (rng.uniform(size=n) < 0.85).astype(float)
+    half = on * (rng.uniform(size=n) < 0.5)
+    Phi = np.column_stack([on, half])
+    r = np.sqrt(0.001 + 0.01 * on + 0.008 * half) * rng.standard_normal(n)
+    ll0 = _fit_variance(r**2, Phi[:, :0])[0]
+    gain_large, gain_small = (_fit_variance(r**2, Phi[:, [j]])[0] - ll0 for j in (0, 1))
+    assert gain_large > gain_small > 0.5 * np.log(n)  # both pass the BIC's gain; seed 0: 44.7 and 8.3 nats
+
+    def pinned(r2, v, Phi_rest, *, with_gains=False):
+        p = np.array([0.02 if np.array_equal(col, on) else 0.01 for col in Phi_rest.T])
+        return (p, np.ones_like(p)) if with_gains else p
+
+    monkeypatch.setattr("microctl.models.noise_dictionary._max_stat_pvalues", pinned)
+    sel = select_features(r, Phi, ["large", "small"], max_features=1)
+    assert sel.names == ("large",) and sel.p_values == (0.02,)
+    np.testing.assert_allclose(sel.gains[0], gain_large, rtol=0, atol=1e-6)
+
+
 def test_clean_residuals_select_nothing_on_most_seeds(afm):
     """Homoscedastic residuals: at family-wise level 0.05, nothing is selected on >= 18 of 20 seeds
     (the binomial 95 % upper bound on false selections at 5 % is 2.7 of 20)."""
