@@ -6,8 +6,9 @@ the sources the selection chose there until 2026-12-02, when the smaller p-value
 significant candidates (``dq1:sat@1, dq2:down, dq1:sq, dq2:sq``; found by the rig bench's audit,
 scripts/rig_audit.py: the trained floor std is below 1e-4 µm while that rig's gauge scatters by
 tens of nm). They are named to the trainer (``noise_sources``), so the fit is that one; the
-default selection now takes the two true sources there, and that model's floor is not flagged. Whether f passes through a flagged reading is checked directly,
-not through the hat value: its residual y - f is below a thousandth of the rig's gauge noise.
+default selection now takes the two true sources there, and that model's floor is not flagged.
+Whether f passes through a flagged reading is checked directly, not through the hat value: its
+residual y - f is below a thousandth of the rig's gauge noise.
 The clean rig 0 (gauge noise only, 200 moves), where every move is floor-only, is not flagged.
 """
 
