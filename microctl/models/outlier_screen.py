@@ -14,9 +14,12 @@ The screen therefore judges each suspect row by a variance fitted *without* it:
    the largest ``r^2 / v`` and those with the largest ``|r|`` (:data:`SCREEN_TOP` of each: a
    masked row can have an ordinary ``r^2 / v``, never an ordinary ``|r|`` if its error is gross)
    are the suspects;
-2. for each suspect i the coefficients are refitted on every other row (the sources and the
-   tilt's direction held), and ``z_(-i) = r_i / sqrt(v_(-i)(x_i))`` is its deletion residual: under
-   the model it is standard normal whatever row i holds;
+2. the sources are selected again on every row but the suspects (:func:`screening_sources`:
+   the selection made with a corrupt reading can hold a source that peaks at it, and the other
+   rows keep that source's coefficient when the row alone is left out); for each suspect i
+   their coefficients are refitted on every other row (the sources and the tilt's direction
+   held), and ``z_(-i) = r_i / sqrt(v_(-i)(x_i))`` is its deletion residual: under the model it
+   is standard normal whatever row i holds;
 3. the parametric sources describe a stage's scatter only in part (g's GP models the rest), so
    a suspect is also judged against the scatter of its
    :data:`SCREEN_NEIGHBOURS` nearest moves (in the standardised actuator positions before and
@@ -25,7 +28,7 @@ The screen therefore judges each suspect row by a variance fitted *without* it:
    ratio (never lowered, so a stage the model describes is judged as in step 2);
 4. a suspect is found (:func:`screen_rows`) when ``|z_(-i)|`` exceeds the Bonferroni bound of
    family-wise level :data:`SCREEN_ALPHA` over the n rows (two-sided) for the tails the rows
-   not suspected show under the sources (:func:`tail_bound`: Gaussian when they look Gaussian;
+   not suspected show under the sources fitted on them (:func:`tail_bound`: Gaussian when they look Gaussian;
    where a ball lifts off, as on the paper-scale rig, the sources leave a scatter with much
    heavier tails, and a Gaussian bound set aside legitimate moves): a stage whose scatter the
    model describes sets aside no row with probability at most about ``SCREEN_ALPHA``;
@@ -52,9 +55,9 @@ from statistics import NormalDist
 
 import numpy as np
 
-from microctl.models.noise_dictionary import fit_variance_with, variance_design
+from microctl.models.noise_dictionary import fit_variance_with, select_features, variance_design
 
-__all__ = ["describe_screen", "SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
+__all__ = ["describe_screen", "fitted_variance", "suspect_rows", "screening_sources", "SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
            "deletion_residuals", "screen_rows", "bonferroni_bound", "max_screened", "tail_bound"]
 
 #: Family-wise level of the screen over a log's rows (two-sided). Chosen before it was measured
@@ -202,9 +205,83 @@ def deletion_residuals(residual: np.ndarray, Phi: np.ndarray, rows: np.ndarray, 
     return out
 
 
+def fitted_variance(residual: np.ndarray, Phi: np.ndarray, tilt_inputs: np.ndarray | None = None,
+                    tilt: np.ndarray | None = None) -> np.ndarray:
+    """The variance model ``c_0 + sum_j c_j phi_j (+ tilt)`` fitted by maximum likelihood to the
+    squared residual, at the rows given.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+    Phi : ndarray, shape (n, p)
+    tilt_inputs, tilt : ndarray, shapes (n, m) and (m,), optional
+        The tilt source's inputs and its direction (held).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    r = np.asarray(residual, dtype=float)
+    _, c = fit_variance_with(r ** 2, Phi, tilt_inputs, tilt)
+    return np.maximum(variance_design(Phi, tilt_inputs, tilt) @ c, 1e-300)
+
+
+def suspect_rows(residual: np.ndarray, variance: np.ndarray, top: int = SCREEN_TOP) -> np.ndarray:
+    """Step 1 of the module docstring: the ``top`` rows with the largest ``r^2 / v`` and the ``top``
+    with the largest ``|r|`` (a source that peaks at a corrupt row can pull its standardised
+    residual down to nothing), sorted, shape (<= 2 top,)."""
+    r = np.asarray(residual, dtype=float)
+    k = min(top, len(r))
+    return np.unique(np.concatenate([np.argsort(-(r * r) / variance)[:k], np.argsort(-np.abs(r))[:k]]))
+
+
+def screening_sources(residual: np.ndarray, candidates: np.ndarray, names, tilt_inputs: np.ndarray, selection, *,
+                      reselect: bool, alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The suspects under the selection made on every row, and the sources the screen judges them
+    by (module docstring, steps 1-2): the selection made again on every row but the suspects.
+
+    The selection made with a corrupt reading can hold a source that peaks at it and masks it:
+    on the independent stage of ``tests/models/test_outlier_screen.py`` a saturating step of the
+    stick-slip actuator, whose coefficient the other large steps keep when the reading alone is
+    left out of the refit.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n,)
+    candidates : ndarray, shape (n, P)
+        Every candidate source at the training inputs.
+    names : sequence of str, length P
+    tilt_inputs : ndarray, shape (n, k)
+        The tilt's inputs.
+    selection : Selection
+        The selection made on every row (:func:`microctl.models.noise_dictionary.select_features`).
+    reselect : bool
+        False keeps ``selection`` (sources named by the user).
+    alpha : float
+        The selection's level.
+
+    Returns
+    -------
+    suspects : ndarray of int
+    Phi : ndarray, shape (n, p)
+        The sources to judge by, at every row.
+    tilt_inputs, tilt : ndarray or None
+        The tilt's inputs and direction when those sources hold it.
+    """
+    r = np.asarray(residual, dtype=float)
+    with_tilt = tilt_inputs if selection.tilt is not None else None
+    suspects = suspect_rows(r, fitted_variance(r, candidates[:, list(selection.indices)], with_tilt, selection.tilt))
+    sel = selection
+    if reselect:
+        keep = np.setdiff1d(np.arange(len(r)), suspects)
+        sel = select_features(r[keep], candidates[keep], names, tilt_inputs=tilt_inputs[keep], alpha=alpha)
+    return suspects, candidates[:, list(sel.indices)], (tilt_inputs if sel.tilt is not None else None), sel.tilt
+
+
 def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarray | None = None,
                 tilt: np.ndarray | None = None, local_inputs: np.ndarray | None = None,
-                alpha: float = SCREEN_ALPHA, top: int = SCREEN_TOP, max_rows: int | None = None) -> Screen:
+                alpha: float = SCREEN_ALPHA, top: int = SCREEN_TOP, max_rows: int | None = None,
+                suspects: np.ndarray | None = None) -> Screen:
     """Rows whose deletion residual is beyond the bound for the other rows' tails (module docstring,
     steps 1-4).
 
@@ -222,6 +299,9 @@ def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarra
         this many with the largest ``|r|``.
     max_rows : int, optional
         Most rows set aside (default :func:`max_screened` of n); more beyond the bound: none.
+    suspects : ndarray of int, optional
+        Rows examined besides this fit's own suspects (training passes the suspects of the
+        selection that was made with every row, when Phi holds the sources selected without them).
 
     Returns
     -------
@@ -230,14 +310,12 @@ def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarra
     r = np.asarray(residual, dtype=float)
     n = len(r)
     Phi = np.asarray(Phi, dtype=float).reshape(n, -1)
-    _, c = fit_variance_with(r ** 2, Phi, tilt_inputs, tilt)
-    v = np.maximum(variance_design(Phi, tilt_inputs, tilt) @ c, 1e-300)
-    # the suspects: the largest residuals against the fitted variance, and the largest in µm (a
-    # source that peaks at a corrupt row can pull its standardised residual down to nothing)
-    k = min(top, n)
-    suspects = np.unique(np.concatenate([np.argsort(-(r * r) / v)[:k], np.argsort(-np.abs(r))[:k]]))
+    v = fitted_variance(r, Phi, tilt_inputs, tilt)
+    suspects = np.union1d(suspect_rows(r, v, top), [] if suspects is None else suspects).astype(int)
     z = deletion_residuals(r, Phi, suspects, tilt_inputs=tilt_inputs, tilt=tilt, local_inputs=local_inputs)
-    bound, nu = tail_bound(np.delete(r / np.sqrt(v), suspects), n, alpha)  # the tails of the rows not suspected
+    bulk = np.setdiff1d(np.arange(n), suspects)  # the tails of the rows not suspected, under a fit on them
+    vb = fitted_variance(r[bulk], Phi[bulk], None if tilt_inputs is None else tilt_inputs[bulk], tilt)
+    bound, nu = tail_bound(r[bulk] / np.sqrt(vb), n, alpha)
     out = np.abs(z) > bound
     cap = max_screened(n) if max_rows is None else int(max_rows)
     if int(out.sum()) > cap:

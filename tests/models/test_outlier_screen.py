@@ -24,6 +24,7 @@ from microctl.models.outlier_screen import (
     deletion_residuals,
     max_screened,
     screen_rows,
+    suspect_rows,
     tail_bound,
 )
 
@@ -98,6 +99,16 @@ def test_a_corrupt_reading_hidden_by_a_source_that_peaks_at_it_is_found():
     # its neighbours (in the step) are as quiet as the model says, so the local check keeps it
     step = np.sqrt(Phi[:, 0])
     assert screen_rows(r, Phi2, local_inputs=step[:, None]).rows == (40,)
+
+
+def test_suspects_are_the_largest_standardised_and_the_largest_residuals():
+    """Step 1: a row whose variance the fit raised to its residual (masked: ordinary r^2 / v) is
+    still a suspect by |r|; a quiet row with a small residual that is large against its small
+    variance is one by r^2 / v. Hand-made residuals, variances and the expected set."""
+    r = np.array([0.1, -0.2, 5.0, 0.05, 0.3, -0.1])
+    v = np.array([1.0, 1.0, 25.0, 1e-4, 1.0, 1.0])  # row 2 masked (z = 1), row 3 z = 5
+    assert suspect_rows(r, v, top=1).tolist() == [2, 3]
+    assert suspect_rows(r, v, top=2).tolist() == [2, 3, 4]  # r^2/v: rows 3, 2; |r|: rows 2, 4
 
 
 def test_scatter_the_sources_miss_is_judged_against_the_neighbouring_moves():
