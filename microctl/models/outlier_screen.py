@@ -14,12 +14,13 @@ The screen therefore judges each suspect row by a variance fitted *without* it:
    the largest ``r^2 / v`` and those with the largest ``|r|`` (:data:`SCREEN_TOP` of each: a
    masked row can have an ordinary ``r^2 / v``, never an ordinary ``|r|`` if its error is gross)
    are the suspects;
-2. the sources are selected again on every row but the suspects (:func:`screening_sources`:
-   the selection made with a corrupt reading can hold a source that peaks at it, and the other
-   rows keep that source's coefficient when the row alone is left out); for each suspect i
-   their coefficients are refitted on every other row (the sources and the tilt's direction
-   held), and ``z_(-i) = r_i / sqrt(v_(-i)(x_i))`` is its deletion residual: under the model it
-   is standard normal whatever row i holds;
+2. each suspect is judged by the sources selected again on every row but it
+   (:func:`sources_without_row`; the selection made with a corrupt reading can hold a source
+   that peaks at it, and the other rows keep that source's coefficient when the row alone is
+   refitted out); their coefficients are refitted on every other row (the sources and the
+   tilt's direction held), and ``z_(-i) = r_i / sqrt(v_(-i)(x_i))`` is its deletion residual:
+   under the model it is standard normal whatever row i holds. The tails of step 4 are read
+   under the sources selected without all suspects (:func:`screening_sources`);
 3. the parametric sources describe a stage's scatter only in part (g's GP models the rest), so
    a suspect is also judged against the scatter of its
    :data:`SCREEN_NEIGHBOURS` nearest moves (in the standardised actuator positions before and
@@ -57,7 +58,7 @@ import numpy as np
 
 from microctl.models.noise_dictionary import fit_variance_with, select_features, variance_design
 
-__all__ = ["describe_screen", "fitted_variance", "suspect_rows", "screening_sources", "SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
+__all__ = ["describe_screen", "fitted_variance", "sources_without_row", "suspect_rows", "screening_sources", "SCREEN_ALPHA", "SCREEN_TOP", "SCREEN_MAX_SHARE", "SCREEN_NEIGHBOURS", "MIN_NU", "Screen",
            "deletion_residuals", "screen_rows", "bonferroni_bound", "max_screened", "tail_bound"]
 
 #: Family-wise level of the screen over a log's rows (two-sided). Chosen before it was measured
@@ -278,10 +279,27 @@ def screening_sources(residual: np.ndarray, candidates: np.ndarray, names, tilt_
     return suspects, candidates[:, list(sel.indices)], (tilt_inputs if sel.tilt is not None else None), sel.tilt
 
 
+def sources_without_row(residual: np.ndarray, candidates: np.ndarray, names, tilt_inputs: np.ndarray, *,
+                        alpha: float):
+    """``own(i) -> (Phi_i, tilt_inputs_i, tilt_i)``: the sources selected on every row but i (at
+    every row), for :func:`screen_rows`'s ``own_sources``. Left out together, the suspects can
+    take with them the evidence of a source the stage has (gauge_tilt rig 1 of
+    ``scripts/bench_screen.py``: ``rx:sq`` rests on them); left out alone, a corrupt row takes
+    only the source it made."""
+    r = np.asarray(residual, dtype=float)
+
+    def own(i: int):
+        keep = np.arange(len(r)) != i
+        sel = select_features(r[keep], candidates[keep], names, tilt_inputs=tilt_inputs[keep], alpha=alpha)
+        return candidates[:, list(sel.indices)], (tilt_inputs if sel.tilt is not None else None), sel.tilt
+
+    return own
+
+
 def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarray | None = None,
                 tilt: np.ndarray | None = None, local_inputs: np.ndarray | None = None,
                 alpha: float = SCREEN_ALPHA, top: int = SCREEN_TOP, max_rows: int | None = None,
-                suspects: np.ndarray | None = None) -> Screen:
+                suspects: np.ndarray | None = None, own_sources=None) -> Screen:
     """Rows whose deletion residual is beyond the bound for the other rows' tails (module docstring,
     steps 1-4).
 
@@ -302,6 +320,9 @@ def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarra
     suspects : ndarray of int, optional
         Rows examined besides this fit's own suspects (training passes the suspects of the
         selection that was made with every row, when Phi holds the sources selected without them).
+    own_sources : callable, optional
+        ``own_sources(i) -> (Phi_i, tilt_inputs_i, tilt_i)``: the sources suspect i is judged by
+        (training: those selected on every row but i); default Phi's.
 
     Returns
     -------
@@ -312,7 +333,11 @@ def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarra
     Phi = np.asarray(Phi, dtype=float).reshape(n, -1)
     v = fitted_variance(r, Phi, tilt_inputs, tilt)
     suspects = np.union1d(suspect_rows(r, v, top), [] if suspects is None else suspects).astype(int)
-    z = deletion_residuals(r, Phi, suspects, tilt_inputs=tilt_inputs, tilt=tilt, local_inputs=local_inputs)
+    if own_sources is None:
+        z = deletion_residuals(r, Phi, suspects, tilt_inputs=tilt_inputs, tilt=tilt, local_inputs=local_inputs)
+    else:  # each suspect by the sources selected without it
+        z = np.array([deletion_residuals(r, P_i, [i], tilt_inputs=Z_i, tilt=w_i, local_inputs=local_inputs)[0]
+                      for i in suspects for P_i, Z_i, w_i in [own_sources(int(i))]])
     bulk = np.setdiff1d(np.arange(n), suspects)  # the tails of the rows not suspected, under a fit on them
     vb = fitted_variance(r[bulk], Phi[bulk], None if tilt_inputs is None else tilt_inputs[bulk], tilt)
     bound, nu = tail_bound(r[bulk] / np.sqrt(vb), n, alpha)

@@ -30,7 +30,7 @@ from microctl.models.mean_shift import trend_features, with_mean_shift
 from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
 from microctl.models.noise_inputs import G_INPUTS, G_STARTS, g_input_map, step_map
 from microctl.models.noise_summary import noise_summary
-from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, screening_sources, tail_bound
+from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, screening_sources, sources_without_row, tail_bound
 from microctl.util.fields import setting, validate_settings
 
 __all__ = ["AUTO_SPARSE_ROWS", "GP_FORMS", "MAX_SPARSE_ROWS", "max_train_rows", "uses_sparse", "NOISE_MODELS", "ResidualModelSettings", "ResidualData", "residual_dataset", "actuator_step_features",
@@ -490,10 +490,9 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
               max_time: float | None) -> tuple[ResidualData, _Sources, dict]:
     """Steps 1 and 2 of :func:`_fit_dictionary` with the corrupt-reading screen
     (:mod:`microctl.models.outlier_screen`): suspects beyond the bound under the sources selected
-    without them (:func:`~microctl.models.outlier_screen.screening_sources`) and refitted without
-    each are confirmed with the whole first model refitted without it (:func:`_deletion_z`)
-    against the same bound (:func:`~microctl.models.outlier_screen.tail_bound`); confirmed rows are
-    set aside and steps 1-2 redone, up to :data:`SCREEN_ROUNDS` times.
+    without each (:func:`~microctl.models.outlier_screen.sources_without_row`) are confirmed with
+    the whole first model refitted without it (:func:`_deletion_z`) against the same bound; rows
+    confirmed are set aside and steps 1-2 redone, up to :data:`SCREEN_ROUNDS` times.
 
     Returns
     -------
@@ -518,11 +517,12 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
         room = max_screened(n0) - len(rows)
         if room <= 0:
             break
-        suspects, Phi, Z, tilt = screening_sources(src.r, src.cands.values(data.context_inputs(afm.n_q)),
+        suspects, Phi, Z, tilt = screening_sources(src.r, cands_all := src.cands.values(data.context_inputs(afm.n_q)),
                                                    src.cands.names, src.tilt_inputs(data, afm.n_s), src.sel,
                                                    reselect=st.noise_sources is None, alpha=SELECTION_ALPHA)
-        found = screen_rows(src.r, Phi, tilt_inputs=Z, tilt=tilt, suspects=suspects,
-                            local_inputs=_positions(data, afm), max_rows=room)
+        found = screen_rows(src.r, Phi, tilt_inputs=Z, tilt=tilt, suspects=suspects, local_inputs=_positions(data, afm),
+                            max_rows=room, own_sources=None if st.noise_sources else sources_without_row(
+                                src.r, cands_all, src.cands.names, src.tilt_inputs(data, afm.n_s), alpha=SELECTION_ALPHA))
         withheld = found.exceeding if found.withheld else 0
         tails, nu = found.bound, found.nu
         confirmed = [(i, z) for i in found.rows if abs(z := _deletion_z(data, afm, src, i, max_time)) > tails]
