@@ -29,10 +29,11 @@ The screen therefore judges each suspect row by a variance fitted *without* it:
    ratio (never lowered, so a stage the model describes is judged as in step 2);
 4. a suspect is found (:func:`screen_rows`) when ``|z_(-i)|`` exceeds the Bonferroni bound of
    family-wise level :data:`SCREEN_ALPHA` over the n rows (two-sided) for the tails the rows
-   not suspected show under the sources fitted on them (:func:`tail_bound`: Gaussian when they look Gaussian;
-   where a ball lifts off, as on the paper-scale rig, the sources leave a scatter with much
-   heavier tails, and a Gaussian bound set aside legitimate moves): a stage whose scatter the
-   model describes sets aside no row with probability at most about ``SCREEN_ALPHA``;
+   not suspected show under those sources fitted on them (:func:`tail_bound`: Gaussian when
+   they look Gaussian; where a ball lifts off, as on the paper-scale rig, the sources leave a
+   scatter with much heavier tails, and a Gaussian bound set aside legitimate moves): a stage
+   whose scatter the model describes sets aside no row with probability at most about
+   ``SCREEN_ALPHA``;
 5. training (:func:`microctl.models.training._screened`) confirms each row this screen finds
    with the whole first model (f, g's GP and its stick-slip prior) refitted without the row: the
    row is set aside only if its residual is beyond the same bound under that model's
@@ -270,13 +271,23 @@ def screening_sources(residual: np.ndarray, candidates: np.ndarray, names, tilt_
         The tilt's inputs and direction when those sources hold it.
     """
     r = np.asarray(residual, dtype=float)
-    with_tilt = tilt_inputs if selection.tilt is not None else None
-    suspects = suspect_rows(r, fitted_variance(r, candidates[:, list(selection.indices)], with_tilt, selection.tilt))
-    sel = selection
-    if reselect:
-        keep = np.setdiff1d(np.arange(len(r)), suspects)
-        sel = select_features(r[keep], candidates[keep], names, tilt_inputs=tilt_inputs[keep], alpha=alpha)
-    return suspects, candidates[:, list(sel.indices)], (tilt_inputs if sel.tilt is not None else None), sel.tilt
+    given = _sources_of(selection, candidates, tilt_inputs)
+    suspects = suspect_rows(r, fitted_variance(r, *given))
+    if not reselect:
+        return (suspects, *given)
+    return (suspects, *_selected_without(r, candidates, names, tilt_inputs, suspects, alpha))
+
+
+def _sources_of(selection, candidates: np.ndarray, tilt_inputs: np.ndarray) -> tuple:
+    """``(Phi, tilt_inputs or None, tilt)`` of a selection, at every row."""
+    return candidates[:, list(selection.indices)], (tilt_inputs if selection.tilt is not None else None), selection.tilt
+
+
+def _selected_without(r: np.ndarray, candidates: np.ndarray, names, tilt_inputs: np.ndarray, rows, alpha: float) -> tuple:
+    """:func:`_sources_of` the selection made on every row but ``rows``."""
+    keep = np.setdiff1d(np.arange(len(r)), rows)
+    return _sources_of(select_features(r[keep], candidates[keep], names, tilt_inputs=tilt_inputs[keep], alpha=alpha),
+                       candidates, tilt_inputs)
 
 
 def sources_without_row(residual: np.ndarray, candidates: np.ndarray, names, tilt_inputs: np.ndarray, *,
@@ -287,13 +298,7 @@ def sources_without_row(residual: np.ndarray, candidates: np.ndarray, names, til
     ``scripts/bench_screen.py``: ``rx:sq`` rests on them); left out alone, a corrupt row takes
     only the source it made."""
     r = np.asarray(residual, dtype=float)
-
-    def own(i: int):
-        keep = np.arange(len(r)) != i
-        sel = select_features(r[keep], candidates[keep], names, tilt_inputs=tilt_inputs[keep], alpha=alpha)
-        return candidates[:, list(sel.indices)], (tilt_inputs if sel.tilt is not None else None), sel.tilt
-
-    return own
+    return lambda i: _selected_without(r, candidates, names, tilt_inputs, [i], alpha)
 
 
 def screen_rows(residual: np.ndarray, Phi: np.ndarray, *, tilt_inputs: np.ndarray | None = None,

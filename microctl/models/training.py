@@ -517,12 +517,11 @@ def _screened(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSe
         room = max_screened(n0) - len(rows)
         if room <= 0:
             break
-        suspects, Phi, Z, tilt = screening_sources(src.r, cands_all := src.cands.values(data.context_inputs(afm.n_q)),
-                                                   src.cands.names, src.tilt_inputs(data, afm.n_s), src.sel,
-                                                   reselect=st.noise_sources is None, alpha=SELECTION_ALPHA)
+        reselect, pool = st.noise_sources is None, (src.r, src.cands.values(data.context_inputs(afm.n_q)), src.cands.names,
+                                                    src.tilt_inputs(data, afm.n_s))  # sources named by the user are kept
+        suspects, Phi, Z, tilt = screening_sources(*pool, src.sel, reselect=reselect, alpha=SELECTION_ALPHA)
         found = screen_rows(src.r, Phi, tilt_inputs=Z, tilt=tilt, suspects=suspects, local_inputs=_positions(data, afm),
-                            max_rows=room, own_sources=None if st.noise_sources else sources_without_row(
-                                src.r, cands_all, src.cands.names, src.tilt_inputs(data, afm.n_s), alpha=SELECTION_ALPHA))
+                            max_rows=room, own_sources=sources_without_row(*pool, alpha=SELECTION_ALPHA) if reselect else None)
         withheld = found.exceeding if found.withheld else 0
         tails, nu = found.bound, found.nu
         confirmed = [(i, z) for i in found.rows if abs(z := _deletion_z(data, afm, src, i, max_time)) > tails]
