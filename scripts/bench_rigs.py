@@ -375,8 +375,24 @@ def _model_noise(eafm: EAFM, s: np.ndarray, u: np.ndarray) -> tuple[float, float
     return float(np.sqrt(np.exp(p.g_mean[0] + p.g_var[0] / 2.0))), float(np.sqrt(p.f_var[0]))
 
 
-def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev, seed: int) -> dict:
-    """Solve one target with the method, the oracle and the AFM; score them with the family's truth."""
+def _mean_parts(eafm: EAFM, train, s: np.ndarray, u: np.ndarray, true_mean: float) -> dict | None:
+    """f's error at the chosen pose split into the part noise-free training data would leave and
+    the part the training noise draws add (scripts/rig_audit.py, ``mean_error_parts``); None where
+    the split is not available (a sparse model, a reading set aside)."""
+    if train is None:
+        return None
+    y, y_true, v = train
+    x = np.concatenate([s, u] + ([eafm.direction] if eafm.uses_direction else []))
+    w = rig_audit.f_weights(eafm.model, y, x)
+    if w is None:
+        return None
+    return rig_audit.mean_error_parts(w, y, y_true, v, true_mean - float(eafm.afm.t_of(u[None, :])[0]))
+
+
+def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev, seed: int, train=None) -> dict:
+    """Solve one target with the method, the oracle and the AFM; score them with the family's truth
+    (``train``: the training residuals, their noise-free truth and true variances, for
+    :func:`_mean_parts`)."""
     res = ctrl.solve(target, s, u_init=prev)
     o = oracle.solve(target, s)
     a = base.solve(target, s)
@@ -395,6 +411,7 @@ def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev,
             "pred_std_um": res.predicted_std_um, "u": res.u.tolist(), "q_um": res.q.round(3).tolist(),
             "q_prev_um": s[1:].round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "afm_q_um": a.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s, "choice": res.choice,
             "verify_n": int(len(rand)), "verify_violations": viol,
+            "mean_parts": _mean_parts(ctrl.eafm, train, s, res.u, true_mean),
             "verify_min_std_um": float(rand_std.min()) if len(rand) else float("nan")}
 
 
@@ -415,7 +432,10 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
             t_fit = time.perf_counter() - t0
             model, _ = with_floor_check(model, data)  # kept in the JSON (microctl.models.floor_check)
             with rig.stage(seed + 10_000) as stage:  # the collection's seed: the replay meets the same states
-                audit = rig_audit.training_evidence(stage, log.u, log.t, data, model)
+                truth = rig_audit.replay_truth(stage, log.u)
+                audit = rig_audit.training_evidence(stage, log.u, log.t, data, model, truth=truth)
+            # the training residuals, the truth's noise-free ones and the readings' true variances
+            train = (data.y, truth[0] - (np.asarray(log.t) - data.y), truth[1])
             audit["entry_nats"] = rig_audit.entry_evidence(
                 SELECTION_ALPHA, (model.info.get("noise_selection") or {}).get("candidates", 1))
             ctrls = ByDirection(EAFM(afm, model), lambda e: OptimalController(e, meth.controller))
@@ -426,7 +446,7 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
                 prev, last = None, direction.initial(afm.n_q)  # the directions, from the commands sent
                 for k, target in enumerate(TARGETS_UM):
                     s = stage.state
-                    rows.append(_score_target(stage, ctrls(last), oracle, base, target, s, prev, seed * 10 + k))
+                    rows.append(_score_target(stage, ctrls(last), oracle, base, target, s, prev, seed * 10 + k, train))
                     prev = np.asarray(rows[-1]["u"])
                     stage.move(prev)
                     last = direction.after_move(last, s[1:], afm.q_of(prev))
@@ -560,7 +580,8 @@ def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
             row.update(family=fam, verify_n=sum(t["verify_n"] for t in tg),
                        verify_violations=sum(t["verify_violations"] for t in tg),
                        mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)),
-                       controller_losses=_controller_losses(runs), **_audit_summary(runs))
+                       controller_losses=_controller_losses(runs), mean_draws=_mean_draws(runs),
+                       **_audit_summary(runs))
             table.append(row)
     return table
 
@@ -584,6 +605,20 @@ def _controller_losses(runs: list[dict]) -> str:
     """``"k of m"``: of the m failing rig-targets, k where the model ranked the oracle's pose better."""
     fails = [t for r in runs for t in r["targets"] if not _target_passes(t)]
     return f"{sum(controller_loss(t) for t in fails)} of {len(fails)}"
+
+
+def _mean_draws(runs: list[dict]) -> str:
+    """``"k of m (|z| med x)"``: of the m rig-targets failing on the mean whose error could be
+    split (:func:`_mean_parts`), k where the model trained on the truth's noise-free residuals
+    would be within the bar at the same pose (the error is the training noise's draw), and the
+    median |z| of the noise part under the truth."""
+    parts = [t["mean_parts"] for r in runs for t in r["targets"]
+             if abs(t["err_um"]) > ERR_BAR_UM and t.get("mean_parts")]
+    if not parts:
+        return "0 of 0"
+    k = sum(abs(p["bias_um"]) <= ERR_BAR_UM for p in parts)
+    z = _q([abs(p["noise_um"]) / p["noise_std_um"] for p in parts if p["noise_std_um"] > 0], 50)
+    return f"{k} of {len(parts)} (|z| med {z:.1f})"
 
 
 def _target_passes(t: dict) -> bool:
@@ -632,6 +667,10 @@ def _fmt_fail(f: dict) -> str:
                f"; evidence against the model at the training moves {f['audit']['evidence_nats']:.1f} nats "
                f"(of it the mean {f['audit']['mean_part_nats']:.1f}; one source enters at "
                f"{f['audit']['entry_nats']:.1f})")
+            + ("" if not f.get("mean_parts") else
+               f"; f's error {-f['err_um']:+.3f} µm = {f['mean_parts']['bias_um']:+.3f} with noise-free training "
+               f"data + {f['mean_parts']['noise_um']:+.3f} from the training noise (its std under the truth "
+               f"{f['mean_parts']['noise_std_um']:.3f})")
             + ("" if not f.get("floor_check") else
                f"; floor not an estimate: f passes through {len(f['floor_check']['rows'])} floor-only training "
                f"readings (floor std {f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))
@@ -646,7 +685,8 @@ def print_families(table: list[dict], results: list[dict]) -> None:
                                          f"{t['cal_pass']}/{t['cal_n']}, oracle beaten {t['verify_violations']}/"
                                          f"{t['verify_n']}, evidence med {t['evidence_median']:.1f} nats, failing "
                                          f"rigs whose data show the error {t['fail_shown']}, failing targets the model ranked the oracle's pose "
-                                         f"better at {t['controller_losses']}"
+                                         f"better at {t['controller_losses']}, mean failures within the bar with "
+                                         f"noise-free training data {t['mean_draws']}"
                                          for t in table).replace(" ; ", "\n  "))
     fails = failing_targets(results)
     print(f"\nfailing rig-targets ({len(fails)}):")

@@ -24,6 +24,22 @@ move, not only those that decide the controller's choice.
 collection's seed (the stage is deterministic given its seed, so the replay passes through the
 same states, which the family's truth reads: the actuators' last directions, the hinge's
 nominal pose), the truth taken before each move.
+
+Where a rig fails on the mean, ``mean_error_parts`` asks whether the model's form or the training
+noise's draw made the error. f's posterior mean at a pose x* is linear in the training outputs,
+``f(x*) = w . y`` with ``w = 1/n + (I - 1 1^T / n) (K_f + R)^-1 k_f(X, x*)`` (the exact posterior of
+notes/vhgpr.md with y standardised by its mean; the scale cancels), its hyperparameters held at
+their fitted values. With the truth's noise-free residuals y_true (the replay's true means less
+the AFM) in place of y, the error f(x*) - y_true(x*) splits exactly into
+
+    bias  = w . y_true - y_true(x*)     what the model's form and weights leave with noise-free data
+    noise = w . (y - y_true)            what the training readings' noise draws add,
+
+the noise part with standard deviation ``sqrt(sum_i w_i^2 v_i)`` under the truth's variances v.
+A mean failure with a small bias part and a noise part of a few standard deviations is the
+data's draw: an estimator of this form trained on these readings would have made it. (The
+hyperparameters and the selected noise sources were fitted to the same draws; the split holds
+them fixed.)
 """
 
 from __future__ import annotations
@@ -33,7 +49,7 @@ import math
 import numpy as np
 from scipy import stats
 
-__all__ = ["training_evidence", "entry_evidence"]
+__all__ = ["training_evidence", "entry_evidence", "replay_truth", "f_weights", "mean_error_parts"]
 
 
 def entry_evidence(alpha: float, candidates: int) -> float:
@@ -42,7 +58,20 @@ def entry_evidence(alpha: float, candidates: int) -> float:
     return 0.5 * float(stats.chi2.isf(alpha / max(candidates, 1), 1))
 
 
-def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model) -> dict:
+def replay_truth(stage, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Replay the training moves on ``stage`` (a fresh stage with the collection's seed): the true
+    mean and variance of each reading, taken before its move, and the replayed readings, each (n,)."""
+    mean_t, var_t, t_re = [], [], []
+    for u in np.atleast_2d(moves):
+        s = stage.state
+        mean_t.append(float(stage.true_mean(s, u)))
+        var_t.append(float(stage.true_var(s, u)))
+        t_re.append(stage.move(u).t_um)
+    return np.array(mean_t), np.array(var_t), np.array(t_re)
+
+
+def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model,
+                      truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> dict:
     """The truth's expected evidence against ``model`` at the training moves (module docstring).
 
     Parameters
@@ -58,6 +87,9 @@ def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model) -
         The training data built from that log.
     model : FittedVHGPR
         The trained residual model.
+    truth : tuple of ndarray, optional
+        :func:`replay_truth` of ``stage`` and ``moves`` when the caller has it (``stage`` is
+        then not moved).
 
     Returns
     -------
@@ -66,16 +98,61 @@ def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model) -
         ``replay_max_dev_um`` (largest difference between the replayed and the logged readings:
         0 when the replay is faithful).
     """
-    mean_t, var_t, t_re = [], [], []
-    for u in np.atleast_2d(moves):
-        s = stage.state
-        mean_t.append(float(stage.true_mean(s, u)))
-        var_t.append(float(stage.true_var(s, u)))
-        t_re.append(stage.move(u).t_um)
-    m, v = np.array(mean_t), np.array(var_t)
+    m, v, t_re = replay_truth(stage, moves) if truth is None else truth
     p = model.predict(data.inputs_for(model))
     V = p.f_var + np.exp(p.g_mean + 0.5 * p.g_var)
     dm = (m - (np.asarray(t_um) - data.y)) - p.f_mean  # true mean of y = t - t_AFM, less f
     kl = 0.5 * (np.log(V / v) + (v + dm * dm) / V - 1.0)
     return {"evidence_nats": float(np.sum(kl)), "mean_part_nats": float(np.sum(0.5 * dm * dm / V)),
             "replay_max_dev_um": float(np.max(np.abs(np.array(t_re) - np.asarray(t_um)))) if len(t_re) else math.nan}
+
+
+def f_weights(model, y: np.ndarray, x_star: np.ndarray) -> np.ndarray | None:
+    """The weights w of f's posterior mean at ``x_star`` in the training outputs: ``f(x*) = w . y``
+    (module docstring), shape (n,); None for a model without the exact posterior, fitted to
+    another number of rows than y has (a reading set aside), or whose mean the weights do not
+    reproduce (to 1e-6 of y's spread).
+
+    Parameters
+    ----------
+    model : FittedVHGPR
+    y : ndarray, shape (n,)
+        The training outputs the model was fitted to.
+    x_star : ndarray, shape (d,)
+        The pose's input as the model reads it ([s; u], then the context if the model has one).
+    """
+    post = model.posterior
+    if getattr(model, "posterior_form", "exact") != "exact" or post.X.shape[0] != len(y):
+        return None
+    k = post.train_rows("f", post.standardise(np.atleast_2d(np.asarray(x_star, dtype=float))))[0]
+    Li = post.chol_inverse("f")
+    a = Li.T @ (Li @ k)  # (K_f + R)^-1 k_f(X, x*), standardised units: y's scale cancels
+    n = len(y)
+    w = np.full(n, 1.0 / n) + a - a.sum() / n
+    f_star = float(model.predict(np.atleast_2d(x_star)).f_mean[0])
+    # the inverse's round-off is far below this; a wrong form (another y_mean, a sparse posterior) is not
+    return w if abs(float(w @ y) - f_star) <= 1e-6 * (float(np.std(y)) + abs(f_star)) + 1e-12 else None
+
+
+def mean_error_parts(w: np.ndarray, y: np.ndarray, y_true: np.ndarray, var_true: np.ndarray,
+                     y_true_star: float) -> dict:
+    """f's error at a pose split into its bias and noise parts (module docstring).
+
+    Parameters
+    ----------
+    w : ndarray, shape (n,)
+        :func:`f_weights` at the pose.
+    y, y_true, var_true : ndarray, shape (n,)
+        The training residuals, the truth's noise-free residuals and the readings' true variances.
+    y_true_star : float
+        The truth's residual at the pose.
+
+    Returns
+    -------
+    dict
+        ``bias_um``, ``noise_um`` (they sum to f's error ``w . y - y_true_star``) and
+        ``noise_std_um`` (the noise part's standard deviation under the truth).
+    """
+    w, y, y_true, v = (np.asarray(a, dtype=float) for a in (w, y, y_true, var_true))
+    return {"bias_um": float(w @ y_true - y_true_star), "noise_um": float(w @ (y - y_true)),
+            "noise_std_um": float(math.sqrt(float(np.sum(w * w * v))))}

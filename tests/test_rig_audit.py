@@ -100,3 +100,67 @@ def test_entry_level_is_the_bonferroni_chi2_quantile():
     assert audit.entry_evidence(0.05, 1) == pytest.approx(0.5 * 3.841458820694124, rel=1e-9)
     # alpha / m = 0.05 / 80 = 6.25e-4: chi2(1) quantile 11.70 (two-sided normal z = 3.4205)
     assert audit.entry_evidence(0.05, 80) == pytest.approx(0.5 * 3.4205 ** 2, rel=1e-3)
+
+
+# ---- f's error split into the part noise-free data leave and the noise draw's part ------------
+
+def _fitted(se: str, seed: int = 5, n: int = 60):
+    """A VHGPR fit (bias, linear trend, f's SE part ``se``) to affine data with heteroscedastic noise."""
+    from microctl.gp.vhgpr import VHGPR
+
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-1, 1, (n, 2))
+    y_true = 0.4 + 1.5 * X[:, 0] - 0.7 * X[:, 1]
+    v = (0.05 + 0.2 * (X[:, 0] > 0)) ** 2
+    y = y_true + np.sqrt(v) * rng.standard_normal(n)
+    return VHGPR(bias=True, linear=True, linear_prior_var=10.0, se=se, n_restarts=1).fit(X, y), X, y, y_true, v
+
+
+@pytest.mark.parametrize("se", ["off", "on"])
+def test_f_weights_are_the_linear_map_from_the_training_outputs_to_f(se):
+    """w . y' is f at x* for any outputs y' with the hyperparameters held: checked against the
+    package's own prediction of a model whose f weights are re-solved for y' (scipy's Cholesky
+    solve with the model's factor, not the inverse the weights use)."""
+    from dataclasses import replace
+
+    from scipy.linalg import cho_solve
+
+    audit = _audit()
+    model, X, y, _, _ = _fitted(se)
+    rng = np.random.default_rng(11)
+    y2 = y + rng.normal(0.0, 0.5, y.size)
+    L = np.asarray(model.f_chol)
+    other = replace(model, y_mean=float(np.mean(y2)),
+                    f_alpha=cho_solve((L, True), (y2 - np.mean(y2)) / model.y_scale))
+    for x_star in (np.array([0.3, -0.2]), np.array([1.4, 1.2]), X[7]):
+        w = audit.f_weights(model, y, x_star)
+        assert w is not None
+        assert float(w @ y) == pytest.approx(float(model.predict(x_star[None, :]).f_mean[0]), abs=1e-9)
+        assert float(w @ y2) == pytest.approx(float(other.predict(x_star[None, :]).f_mean[0]), abs=1e-8)
+        assert float(np.sum(w)) == pytest.approx(1.0, abs=1e-12)  # a constant added to y moves f by it
+
+
+def test_on_affine_truth_the_bias_part_vanishes_and_the_noise_part_is_the_error():
+    """The truth is affine and f has a vague affine trend: with the noise-free residuals f
+    reproduces it to the trend prior's shrinkage (|bias| <= 1e-3 of the truth's spread); the
+    parts sum to f's error exactly, and the noise part's std is the hand sum sqrt(sum w_i^2 v_i)."""
+    audit = _audit()
+    model, X, y, y_true, v = _fitted("off")
+    x_star = np.array([0.9, -0.8])
+    truth_star = 0.4 + 1.5 * 0.9 + 0.7 * 0.8
+    w = audit.f_weights(model, y, x_star)
+    parts = audit.mean_error_parts(w, y, y_true, v, truth_star)
+    f_err = float(model.predict(x_star[None, :]).f_mean[0]) - truth_star
+    assert parts["bias_um"] + parts["noise_um"] == pytest.approx(f_err, abs=1e-9)
+    assert abs(parts["bias_um"]) <= 1e-3 * np.ptp(y_true)
+    assert abs(parts["noise_um"]) > 1e-3  # the split is not trivially zero
+    assert parts["noise_std_um"] == pytest.approx(math.sqrt(sum(wi * wi * vi for wi, vi in zip(w, v))), rel=1e-12)
+
+
+def test_f_weights_refuse_outputs_the_model_was_not_fitted_to():
+    """A y of another length (a reading set aside) or another y (the weights would not reproduce
+    f) gives None, not a wrong split."""
+    audit = _audit()
+    model, X, y, _, _ = _fitted("off")
+    assert audit.f_weights(model, y[:-1], X[0]) is None
+    assert audit.f_weights(model, y + 1.0 + y ** 2, X[0]) is None
