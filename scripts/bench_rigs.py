@@ -377,8 +377,10 @@ def _model_noise(eafm: EAFM, s: np.ndarray, u: np.ndarray) -> tuple[float, float
 
 def _mean_parts(eafm: EAFM, train, s: np.ndarray, u: np.ndarray, true_mean: float) -> dict | None:
     """f's error at the chosen pose split into the part noise-free training data would leave and
-    the part the training noise draws add (scripts/rig_audit.py, ``mean_error_parts``); None where
-    the split is not available (a sparse model, a reading set aside)."""
+    the part the training noise draws add (scripts/rig_audit.py, ``mean_error_parts``), and
+    ``noise_std_best_um``: the noise part's std for f's form weighed by the true variances (the
+    least any estimator of that form could have); None where the split is not available (a
+    sparse model, a reading set aside)."""
     if train is None:
         return None
     y, y_true, v = train
@@ -386,7 +388,9 @@ def _mean_parts(eafm: EAFM, train, s: np.ndarray, u: np.ndarray, true_mean: floa
     w = rig_audit.f_weights(eafm.model, y, x)
     if w is None:
         return None
-    return rig_audit.mean_error_parts(w, y, y_true, v, true_mean - float(eafm.afm.t_of(u[None, :])[0]))
+    parts = rig_audit.mean_error_parts(w, y, y_true, v, true_mean - float(eafm.afm.t_of(u[None, :])[0]))
+    w_best = rig_audit.f_weights(eafm.model, y, x, noise_var=v)  # the same form told the true variances
+    return {**parts, "noise_std_best_um": float(np.sqrt(np.sum(w_best * w_best * v)))}
 
 
 def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev, seed: int, train=None) -> dict:
@@ -670,7 +674,8 @@ def _fmt_fail(f: dict) -> str:
             + ("" if not f.get("mean_parts") else
                f"; f's error {-f['err_um']:+.3f} µm = {f['mean_parts']['bias_um']:+.3f} with noise-free training "
                f"data + {f['mean_parts']['noise_um']:+.3f} from the training noise (its std under the truth "
-               f"{f['mean_parts']['noise_std_um']:.3f})")
+               f"{f['mean_parts']['noise_std_um']:.3f}; the same form told the true variances "
+               f"{f['mean_parts'].get('noise_std_best_um', math.nan):.3f})")
             + ("" if not f.get("floor_check") else
                f"; floor not an estimate: f passes through {len(f['floor_check']['rows'])} floor-only training "
                f"readings (floor std {f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))

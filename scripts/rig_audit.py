@@ -40,6 +40,13 @@ A mean failure with a small bias part and a noise part of a few standard deviati
 data's draw: an estimator of this form trained on these readings would have made it. (The
 hyperparameters and the selected noise sources were fitted to the same draws; the split holds
 them fixed.)
+
+How small could that std be? The same form weighed by the truth's variances instead of the
+model's R, ``w* = 1/n + (I - 1 1^T / n) (K_f + V)^-1 k_f(X, x*)`` (``f_weights(..., noise_var=v)``),
+is the best linear estimate of that form (generalised least squares with the true weights, for
+the trend): ``sqrt(sum_i w*_i^2 v_i)`` is the noise std no estimator of this form trained on
+these readings could go below, whatever its noise model. The model's own std over it says how
+much the noise model's weighting cost.
 """
 
 from __future__ import annotations
@@ -107,7 +114,7 @@ def training_evidence(stage, moves: np.ndarray, t_um: np.ndarray, data, model,
             "replay_max_dev_um": float(np.max(np.abs(np.array(t_re) - np.asarray(t_um)))) if len(t_re) else math.nan}
 
 
-def f_weights(model, y: np.ndarray, x_star: np.ndarray) -> np.ndarray | None:
+def f_weights(model, y: np.ndarray, x_star: np.ndarray, noise_var: np.ndarray | None = None) -> np.ndarray | None:
     """The weights w of f's posterior mean at ``x_star`` in the training outputs: ``f(x*) = w . y``
     (module docstring), shape (n,); None for a model without the exact posterior, fitted to
     another number of rows than y has (a reading set aside), or whose mean the weights do not
@@ -120,15 +127,24 @@ def f_weights(model, y: np.ndarray, x_star: np.ndarray) -> np.ndarray | None:
         The training outputs the model was fitted to.
     x_star : ndarray, shape (d,)
         The pose's input as the model reads it ([s; u], then the context if the model has one).
+    noise_var : ndarray, shape (n,), optional
+        The readings' noise variances (units of y²) to weigh them by instead of the model's R:
+        the weights of f's form told the true variances (the check against f is then skipped).
     """
     post = model.posterior
     if getattr(model, "posterior_form", "exact") != "exact" or post.X.shape[0] != len(y):
         return None
     k = post.train_rows("f", post.standardise(np.atleast_2d(np.asarray(x_star, dtype=float))))[0]
-    Li = post.chol_inverse("f")
-    a = Li.T @ (Li @ k)  # (K_f + R)^-1 k_f(X, x*), standardised units: y's scale cancels
+    if noise_var is None:
+        Li = post.chol_inverse("f")
+        a = Li.T @ (Li @ k)  # (K_f + R)^-1 k_f(X, x*), standardised units: y's scale cancels
+    else:  # K_f at the training inputs (post.X: standardised) plus the given variances, standardised
+        Kf = post.train_rows("f", post.X)
+        a = np.linalg.solve(Kf + np.diag(np.asarray(noise_var, dtype=float) / model.y_scale ** 2), k)
     n = len(y)
     w = np.full(n, 1.0 / n) + a - a.sum() / n
+    if noise_var is not None:
+        return w
     f_star = float(model.predict(np.atleast_2d(x_star)).f_mean[0])
     # the inverse's round-off is far below this; a wrong form (another y_mean, a sparse posterior) is not
     return w if abs(float(w @ y) - f_star) <= 1e-6 * (float(np.std(y)) + abs(f_star)) + 1e-12 else None

@@ -164,3 +164,24 @@ def test_f_weights_refuse_outputs_the_model_was_not_fitted_to():
     model, X, y, _, _ = _fitted("off")
     assert audit.f_weights(model, y[:-1], X[0]) is None
     assert audit.f_weights(model, y + 1.0 + y ** 2, X[0]) is None
+
+
+def test_weights_told_the_models_own_variances_are_its_weights_and_the_true_ones_do_no_worse():
+    """``noise_var`` replaces the model's R in K_f + R: told the model's own R (read off its factor,
+    whose off-diagonal is K_f's: checked) the weights are the model's; told the truth's variances
+    on an affine truth (f's trend with a vague prior: generalised least squares) the noise part's
+    std is at most the model's (the true weights are the best linear ones; 1 % for the prior's
+    shrinkage)."""
+    audit = _audit()
+    model, X, y, _, v = _fitted("off")
+    post = model.posterior
+    L = np.asarray(model.f_chol)
+    Kf = post.train_rows("f", post.X)
+    R = L @ L.T - Kf
+    np.testing.assert_allclose(R - np.diag(np.diag(R)), 0.0, atol=1e-8 * np.max(np.abs(Kf)))
+    for x_star in (np.array([0.9, -0.8]), X[3]):
+        w = audit.f_weights(model, y, x_star)
+        w_own = audit.f_weights(model, y, x_star, noise_var=np.diag(R) * model.y_scale ** 2)
+        np.testing.assert_allclose(w_own, w, atol=1e-8)
+        w_best = audit.f_weights(model, y, x_star, noise_var=v)
+        assert np.sum(w_best ** 2 * v) <= 1.01 * np.sum(w ** 2 * v)
