@@ -214,6 +214,26 @@ def test_train_describes_what_the_screen_did_by_log_line_and_seq():
     assert line.startswith("note: 9 readings") and "none was set aside" in line
 
 
+def _family_log_selection(tmp_path, family: str, seed: int, moves: int) -> dict:
+    """The default training's noise selection on an unaltered log of rig ``seed`` of ``family``
+    (scripts/rig_families.py): ``moves`` covering moves collected as scripts/bench_screen.py and
+    scripts/bench_rigs.py collect them (design seed ``seed``, stage seed ``seed + 10000``)."""
+    from script_loader import load_script
+
+    from microctl.backends.collect import run_collect
+    from microctl.measurement.design import training_moves
+    from microctl.measurement.log import read_log
+    from microctl.models.afm import AnalyticForwardModel
+    from microctl.models.training import residual_dataset, train_residual_model
+
+    rig = load_script("rig_families").make_family_rig(family, seed)
+    afm = AnalyticForwardModel(rig.config.stage)
+    with rig.stage(seed + 10_000) as st:
+        run_collect(st, training_moves(afm, "covering", moves, seed), tmp_path / "log.csv", quiet=True)
+    model = train_residual_model(residual_dataset(read_log(tmp_path / "log.csv", rig.config.stage, min_rows=5), afm), afm)
+    return model.info["noise_selection"]
+
+
 @pytest.mark.slow
 def test_a_true_source_that_rests_on_the_largest_readings_keeps_them(tmp_path):
     """Hidden effect: rig 1 of the ``gauge_tilt`` family of scripts/rig_families.py (a reading
@@ -224,20 +244,23 @@ def test_a_true_source_that_rests_on_the_largest_readings_keeps_them(tmp_path):
     the sources selected without each suspect alone, no reading is set aside and a tilt source is
     selected (``rx:sq`` or another shape or coordinate of the tilt: its quantity is the pose's
     tilt)."""
-    from script_loader import load_script
-
-    from microctl.backends.collect import run_collect
-    from microctl.measurement.design import training_moves
-    from microctl.measurement.log import read_log
-    from microctl.models.afm import AnalyticForwardModel
-    from microctl.models.training import residual_dataset, train_residual_model
-
-    rf = load_script("rig_families")
-    rig = rf.make_family_rig("gauge_tilt", 1)
-    afm = AnalyticForwardModel(rig.config.stage)
-    with rig.stage(1 + 10_000) as st:
-        run_collect(st, training_moves(afm, "covering", 200, 1), tmp_path / "log.csv", quiet=True)
-    model = train_residual_model(residual_dataset(read_log(tmp_path / "log.csv", rig.config.stage, min_rows=5), afm), afm)
-    sel = model.info["noise_selection"]
+    sel = _family_log_selection(tmp_path, "gauge_tilt", 1, 200)
     assert sel["screened"]["rows"] == [], sel["screened"]
     assert any(name.startswith(("rx:", "ry:", "tilt")) for name in sel["selected"]), sel["selected"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known defect: a legitimate reading that carries most of a true source's "
+                                       "evidence is judged under the sources selected without it (test docstring)")
+def test_a_reading_that_carries_a_true_stroke_patch_is_kept(tmp_path):
+    """Hidden effect: rig 1 of the ``mix`` family (stick-slip on PZT 1 and a rough patch of PZT 2's
+    stroke; the package not told), 125 covering moves, nothing corrupted. Before 41ef8ec the
+    selection took both true sources (``dq1:sq``, ``q2:bump@22.4``) and kept every row. Since, each
+    suspect is judged by the sources selected without it: without row 81 the patch does not
+    enter, row 81's deletion z is -6.24 against a bound of 4.46, it is set aside and the true
+    ``q2`` source is lost. Which of "one corrupt reading" and "a source resting on one reading"
+    the data support is a comparison of the two models' evidence, which the screen does not make
+    yet."""
+    sel = _family_log_selection(tmp_path, "mix", 1, 125)
+    assert sel["screened"]["rows"] == [], sel["screened"]
+    assert any(name.startswith("q2:") for name in sel["selected"]), sel["selected"]
