@@ -378,9 +378,9 @@ def _model_noise(eafm: EAFM, s: np.ndarray, u: np.ndarray) -> tuple[float, float
 def _mean_parts(eafm: EAFM, train, s: np.ndarray, u: np.ndarray, true_mean: float) -> dict | None:
     """f's error at the chosen pose split into the part noise-free training data would leave and
     the part the training noise draws add (scripts/rig_audit.py, ``mean_error_parts``), and
-    ``noise_std_best_um``: the noise part's std for f's form weighed by the true variances (the
-    least any estimator of that form could have); None where the split is not available (a
-    sparse model, a reading set aside)."""
+    ``noise_std_best_um``: the noise part's std for f's form weighed by the true variances (what
+    the noise model's weighting cost); None where the split is not available (a sparse model, a
+    reading set aside)."""
     if train is None:
         return None
     y, y_true, v = train

@@ -41,12 +41,11 @@ data's draw: an estimator of this form trained on these readings would have made
 hyperparameters and the selected noise sources were fitted to the same draws; the split holds
 them fixed.)
 
-How small could that std be? The same form weighed by the truth's variances instead of the
-model's R, ``w* = 1/n + (I - 1 1^T / n) (K_f + V)^-1 k_f(X, x*)`` (``f_weights(..., noise_var=v)``),
-is the best linear estimate of that form (generalised least squares with the true weights, for
-the trend): ``sqrt(sum_i w*_i^2 v_i)`` is the noise std no estimator of this form trained on
-these readings could go below, whatever its noise model. The model's own std over it says how
-much the noise model's weighting cost.
+What did the noise model's weighting cost? The same form with the truth's variances in place of
+the model's R, ``w* = 1/n + (I - 1 1^T / n) (K_f + V)^-1 k_f(X, x*)`` (``f_weights(..., noise_var=v)``),
+weighs the readings as the truth would (for the trend, generalised least squares with the true
+weights: the best linear unbiased estimate): ``sqrt(sum_i w*_i^2 v_i)`` against the model's own
+noise-part std says how much.
 """
 
 from __future__ import annotations
