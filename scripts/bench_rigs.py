@@ -388,9 +388,10 @@ def _mean_parts(eafm: EAFM, train, s: np.ndarray, u: np.ndarray, true_mean: floa
     w = rig_audit.f_weights(eafm.model, y, x)
     if w is None:
         return None
-    parts = rig_audit.mean_error_parts(w, y, y_true, v, true_mean - float(eafm.afm.t_of(u[None, :])[0]))
+    y_star = true_mean - float(eafm.afm.t_of(u[None, :])[0])
     w_best = rig_audit.f_weights(eafm.model, y, x, noise_var=v)  # the same form told the true variances
-    return {**parts, "noise_std_best_um": float(np.sqrt(np.sum(w_best * w_best * v)))}
+    return {**rig_audit.mean_error_parts(w, y, y_true, v, y_star),
+            "noise_std_best_um": rig_audit.mean_error_parts(w_best, y, y_true, v, y_star)["noise_std_um"]}
 
 
 def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev, seed: int, train=None) -> dict:
