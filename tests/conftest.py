@@ -22,6 +22,15 @@ if one_blas_thread(os.environ, sys.modules):
 
 import pytest  # noqa: E402
 
+
+def pytest_collection_modifyitems(config, items):
+    """Files that hold slow tests run first, each file's tests in their own order (a stable sort,
+    so both pytest-xdist workers collect the same order). The suite's wall time on two workers is
+    set by its end: a long run started last leaves the other worker idle while it finishes."""
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow_files)
+
+
 # The tests mirror the packages (tests/stage/, tests/gp/, ...); the shared helpers beside this file
 # (independent_stage.py, serial_rig.py, CONFIGS here) are importable from every folder.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
