@@ -122,6 +122,18 @@ import rig_families  # noqa: E402
 
 TARGETS_UM = (6.0, 12.0, 18.0, 24.0)
 STD_BAR, ERR_BAR_UM, CAL_BAR = 1.25, 0.1, (0.67, 1.5)
+#: The mean half of the bar judged against the accuracy the training data allow (reported beside
+#: issue 18's 0.1 µm, never instead of it): |true error| <= max(ERR_BAR_UM, DATA_ERR_K x sigma*),
+#: sigma* the std that the training noise gives f's mean at the *oracle's* pose when f's form is
+#: told the readings' true variances (``noise_std_best_um`` of :func:`_mean_parts`; at the oracle's
+#: pose so that parking where f is poorly determined widens nothing). A method that put the
+#: oracle's pose and the best weighting to use still errs by N(0, sigma*^2) there, so it fails
+#: issue 18's 0.1 µm on a share of rig-targets set by the rig's noise and the number of moves, not
+#: by the method: a bar that fails the oracle's equal is the rig's, not the method's. K = 3 was
+#: fixed before any run was scored with it: such a method then fails a target with probability
+#: 0.27 % (its four targets are strongly correlated, so about that per rig); where sigma* is not
+#: available (a sparse model, a reading set aside) the bar stays 0.1 µm.
+DATA_ERR_K = 3.0
 #: What the calibration columns compare (the page's legend).
 CAL_TEXT = ("calibration = the readings' true RMS deviation from the prediction (scatter and mean error) / the "
             f"predicted std sqrt(f_var + noise), in {list(CAL_BAR)}; scatter calibration = true std / predicted "
@@ -408,6 +420,7 @@ def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev,
     true_mean = float(stage.true_mean(s, res.u))
     noise_c, f_c = _model_noise(ctrl.eafm, s, res.u)
     noise_o, f_o = _model_noise(ctrl.eafm, s, o.u)
+    at_oracle = _mean_parts(ctrl.eafm, train, s, o.u, target)  # the oracle reaches the target in truth
     return {"pred_noise_std_um": noise_c, "f_std_um": f_c, "pred_noise_std_oracle_um": noise_o,
             "f_std_oracle_um": f_o, "target_um": target, "err_um": true_mean - target, "std_um": math.sqrt(float(stage.true_var(s, res.u))),
             "mc_std_um": float(math.sqrt(mc_var[0])), "mc_err_um": float(mc_mean[0] - target),
@@ -417,6 +430,7 @@ def _score_target(stage, ctrl, oracle, base, target: float, s: np.ndarray, prev,
             "q_prev_um": s[1:].round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "afm_q_um": a.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s, "choice": res.choice,
             "verify_n": int(len(rand)), "verify_violations": viol,
             "mean_parts": _mean_parts(ctrl.eafm, train, s, res.u, true_mean),
+            "f_noise_std_best_oracle_um": at_oracle["noise_std_best_um"] if at_oracle else math.nan,
             "verify_min_std_um": float(rand_std.min()) if len(rand) else float("nan")}
 
 
@@ -543,7 +557,7 @@ def _markdown_table(tag: str, columns, table: list[dict]) -> list[str]:
         for key, _, fmt in columns:
             if fmt is None:
                 total = t["cal_n"] if key.startswith("cal_") else t["verify_n"] if key == "verify_violations" \
-                    else t["rigs"]
+                    else t["data_n"] if key == "data_widened" else t["rigs"]
                 cells.append(f"{t[key]}/{total}")
             else:
                 cells.append(fmt.format(t[key]))
@@ -586,7 +600,7 @@ def family_tables(results: list[dict], families, sizes, methods) -> list[dict]:
                        verify_violations=sum(t["verify_violations"] for t in tg),
                        mc_std_dev_max=float(max(abs(t["mc_std_um"] / t["std_um"] - 1.0) for t in tg)),
                        controller_losses=_controller_losses(runs), mean_draws=_mean_draws(runs),
-                       **_audit_summary(runs))
+                       **_audit_summary(runs), **data_bar_summary(runs))
             table.append(row)
     return table
 
@@ -635,6 +649,28 @@ def _rig_passes(run: dict) -> bool:
     return all(_target_passes(t) for t in run["targets"])
 
 
+def data_err_bar_um(t: dict) -> float:
+    """The mean bar at one rig-target judged by the data's accuracy (:data:`DATA_ERR_K`), µm."""
+    sigma = float(t.get("f_noise_std_best_oracle_um", math.nan))
+    return max(ERR_BAR_UM, DATA_ERR_K * sigma) if math.isfinite(sigma) else ERR_BAR_UM
+
+
+def _rig_passes_data(run: dict) -> bool:
+    """The rig bar with its mean half judged by :func:`data_err_bar_um` (the std half unchanged)."""
+    return all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= data_err_bar_um(t)
+               for t in run["targets"])
+
+
+def data_bar_summary(runs: list[dict]) -> dict:
+    """Counts for the bar of :data:`DATA_ERR_K` over ``runs``: rigs passing it, rig-targets whose
+    mean bar it widens beyond 0.1 µm, and the median sigma* at the oracle's pose."""
+    tg = [t for r in runs for t in r["targets"]]
+    sig = [t.get("f_noise_std_best_oracle_um", math.nan) for t in tg]
+    return {"rigs_data_pass": int(sum(_rig_passes_data(r) for r in runs)),
+            "data_widened": int(sum(data_err_bar_um(t) > ERR_BAR_UM for t in tg)), "data_n": len(tg),
+            "sigma_best_median_um": _q([x for x in sig if math.isfinite(x)], 50)}
+
+
 def _audit_summary(runs: list[dict]) -> dict:
     """The truth's evidence against the models at their training moves (scripts/rig_audit.py):
     its median over the rigs, and how many failing rigs had evidence at least one source's entry
@@ -657,6 +693,21 @@ FAMILY_COLUMNS = (("family", "family", "{}"),) + RIG_COLUMNS + (
 def family_table_markdown(table: list[dict]) -> list[str]:
     """The per-family summary as a Markdown table."""
     return _markdown_table("families", FAMILY_COLUMNS, table)
+
+
+#: The rig bar beside the same bar with its mean half judged by the data's accuracy (:data:`DATA_ERR_K`).
+DATA_BAR_COLUMNS = (
+    ("family", "family", "{}"), ("n", "n (moves)", "{}"), ("method", "method", "{}"),
+    ("rigs_pass", "rigs passing (issue 18's bar)", None), ("rigs_err_pass", "mean within 0.1 µm", None),
+    ("rigs_data_pass", f"rigs passing, mean within max(0.1 µm, {DATA_ERR_K:g} sigma*)", None),
+    ("data_widened", "rig-targets whose mean bar it widens", None),
+    ("sigma_best_median_um", "sigma* at the oracle's pose, median (µm)", "{:.3f}"),
+)
+
+
+def data_bar_markdown(table: list[dict]) -> list[str]:
+    """:data:`DATA_BAR_COLUMNS` as a Markdown table (rows of :func:`family_tables`)."""
+    return _markdown_table("data_bar", DATA_BAR_COLUMNS, [t for t in table if "rigs_data_pass" in t])
 
 
 def _fmt_fail(f: dict) -> str:
@@ -692,7 +743,10 @@ def print_families(table: list[dict], results: list[dict]) -> None:
                                          f"{t['verify_n']}, evidence med {t['evidence_median']:.1f} nats, failing "
                                          f"rigs whose data show the error {t['fail_shown']}, failing targets the model ranked the oracle's pose "
                                          f"better at {t['controller_losses']}, mean failures within the bar with "
-                                         f"noise-free training data {t['mean_draws']}"
+                                         f"noise-free training data {t['mean_draws']}; with the mean judged by "
+                                         f"max({ERR_BAR_UM}, {DATA_ERR_K:g} sigma*) {t['rigs_data_pass']}/{t['rigs']} "
+                                         f"pass ({t['data_widened']}/{t['data_n']} targets widened, sigma* med "
+                                         f"{t['sigma_best_median_um']:.3f})"
                                          for t in table).replace(" ; ", "\n  "))
     fails = failing_targets(results)
     print(f"\nfailing rig-targets ({len(fails)}):")
@@ -717,6 +771,12 @@ def families_markdown(table: list[dict], results: list[dict], header: str, wall_
          f"{CONTROLLER_LOSS_MARGIN:.0%} below the chosen pose's, else the model's (it predicts the oracle's pose no "
          "better).", ""]
     L += family_table_markdown(table)
+    L += ["", f"The same rigs with the mean half of the bar judged by the data's accuracy: |true error| <= "
+          f"max({ERR_BAR_UM} µm, {DATA_ERR_K:g} sigma*), sigma* the std the training noise gives f's mean at the "
+          "oracle's pose when f's form is told the readings' true variances (what a method that found the oracle's "
+          "pose and weighed the readings right would still err by; scripts/bench_rigs.py, `DATA_ERR_K`). Reported "
+          "beside issue 18's bar, not instead of it.", ""]
+    L += data_bar_markdown(table)
     fails = failing_targets(results)
     L += ["", f"Failing rig-targets ({len(fails)}):", ""] + [f"- {_fmt_fail(f)}" for f in fails]
     L += ["", f"Wall time {wall_s:.0f} s.", ""]

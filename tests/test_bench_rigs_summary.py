@@ -91,3 +91,29 @@ def test_the_default_rigs_give_every_field_the_summary_reads():
         assert t["pred_noise_std_um"] > 0 and t["pred_noise_std_oracle_um"] > 0 and t["f_std_um"] >= 0
     (row,) = bench.summarise([res], (30,), ("told",))
     assert row["rigs"] == 1 and row["cal_n"] == 4
+
+
+def test_the_data_limited_mean_bar_widens_only_by_sigma_star_at_the_oracles_pose():
+    """max(0.1 µm, 3 sigma*) worked by hand: sigma* 0.06 gives 0.18 µm, sigma* 0.02 leaves 0.1 µm,
+    a missing sigma* (nan: a sparse model) leaves 0.1 µm; the std half is not touched."""
+    bench = _bench()
+
+    def tgt(err, sigma, std=0.1):
+        return {**_target(std, err, 0.1, 0.1), "f_noise_std_best_oracle_um": sigma}
+
+    assert abs(bench.data_err_bar_um(tgt(0.0, 0.06)) - 0.18) < 1e-12
+    assert bench.data_err_bar_um(tgt(0.0, 0.02)) == 0.1
+    assert bench.data_err_bar_um(tgt(0.0, float("nan"))) == 0.1
+    assert bench.data_err_bar_um({"err_um": 0.0}) == 0.1  # a JSON from before the field: the issue's bar
+    runs = [
+        {"targets": [tgt(0.15, 0.06), tgt(-0.17, 0.06)]},   # within 0.18 at both: passes the data bar only
+        {"targets": [tgt(0.15, 0.06), tgt(0.19, 0.06)]},    # 0.19 > 0.18: fails both
+        {"targets": [tgt(0.12, 0.02)]},                     # 0.12 > max(0.1, 0.06): fails both
+        {"targets": [tgt(0.12, float("nan"))]},             # no sigma*: 0.1 µm, fails both
+        {"targets": [tgt(0.05, 0.06, std=0.2)]},            # std 2x the oracle's: fails both
+        {"targets": [tgt(0.05, 0.01)]},                     # passes both
+    ]
+    got = bench.data_bar_summary(runs)
+    assert (got["rigs_data_pass"], got["data_widened"], got["data_n"]) == (2, 5, 8)  # five targets carry sigma* 0.06 of eight
+    assert sum(bench._rig_passes(r) for r in runs) == 1
+    assert abs(got["sigma_best_median_um"] - 0.06) < 1e-12
