@@ -25,7 +25,7 @@ def bench(monkeypatch):
         calls.append(cmd)
         md = cmd[cmd.index("--markdown") + 1]
         with open(md, "w") as f:
-            f.write(f"<!-- table: families -->\n| run {len(calls)} |\n")
+            f.write(f"<!-- table: families -->\n| run {len(calls)} |\n\n<!-- table: data_bar -->\n| bar {len(calls)} |\n")
         return "", 0.0
 
     monkeypatch.setattr(reproduce, "_run", fake_run)
@@ -55,6 +55,9 @@ def test_both_parts_each_with_provenance_and_command(bench, tmp_path, monkeypatc
         assert f"`python scripts/bench_rigs.py {' '.join(reproduce.BENCH_PARTS[name][0])} --jobs 2`" in block
     assert "| run 1 |" in blocks["dev"] and "<!-- table: families -->" in blocks["dev"]
     assert "| run 2 |" in blocks["held_out"] and "<!-- table: families_held_out -->" in blocks["held_out"]
+    # each part's tables under their own tags: the held-out part's data bar is not the dev part's
+    assert "<!-- table: data_bar -->" in blocks["dev"] and "<!-- table: data_bar_held_out -->" in blocks["held_out"]
+    assert "<!-- table: data_bar -->" not in blocks["held_out"] and "| bar 2 |" in blocks["held_out"]
 
 
 def test_one_part_keeps_the_other_as_measured(bench, tmp_path, monkeypatch):
