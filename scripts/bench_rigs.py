@@ -640,9 +640,9 @@ def _mean_draws(runs: list[dict]) -> str:
     return f"{k} of {len(parts)} (|z| med {z:.1f})"
 
 
-def _target_passes(t: dict) -> bool:
-    """The bar at one rig-target: true std <= STD_BAR x the oracle's and |true error| <= ERR_BAR_UM."""
-    return t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= ERR_BAR_UM
+def _target_passes(t: dict, err_bar_um: float = ERR_BAR_UM) -> bool:
+    """The bar at one rig-target: true std <= STD_BAR x the oracle's and |true error| <= err_bar_um."""
+    return t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= err_bar_um
 
 
 def _rig_passes(run: dict) -> bool:
@@ -657,8 +657,7 @@ def data_err_bar_um(t: dict) -> float:
 
 def _rig_passes_data(run: dict) -> bool:
     """The rig bar with its mean half judged by :func:`data_err_bar_um` (the std half unchanged)."""
-    return all(t["std_um"] <= STD_BAR * t["oracle_std_um"] and abs(t["err_um"]) <= data_err_bar_um(t)
-               for t in run["targets"])
+    return all(_target_passes(t, data_err_bar_um(t)) for t in run["targets"])
 
 
 def data_bar_summary(runs: list[dict]) -> dict:
