@@ -7,6 +7,8 @@ sqrt(std^2 + err^2); the scatter calibration compares the true std with the pred
 
 from __future__ import annotations
 
+import math
+
 from script_loader import load_script
 
 
@@ -89,6 +91,7 @@ def test_the_default_rigs_give_every_field_the_summary_reads():
     assert run["selected"] and {nm.split(":")[0] for nm in run["selected"]} == {f"d{q}" for q in res["friction"]}
     for t in run["targets"]:
         assert t["pred_noise_std_um"] > 0 and t["pred_noise_std_oracle_um"] > 0 and t["f_std_um"] >= 0
+        assert math.isfinite(t["pred_alt_var_um2"]) and t["pred_alt_var_um2"] >= 0  # v_alt, as EAFM.alt_var
     (row,) = bench.summarise([res], (30,), ("told",))
     assert row["rigs"] == 1 and row["cal_n"] == 4
 
