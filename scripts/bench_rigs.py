@@ -347,7 +347,8 @@ def run_rig(seed: int, sizes: tuple[int, ...], methods: tuple[str, ...]) -> dict
                                  "afm_std_um": math.sqrt(float(stage.true_var(s, a.u))),
                                  "pred_std_um": res.predicted_std_um,
                                  "pred_alt_var_um2": float(ctrl.eafm.alt_var(s, res.u)[0]),
-                                 "q_um": res.q.round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(), "solve_ms": 1e3 * res.solve_time_s})
+                                 "q_um": res.q.round(3).tolist(), "oracle_q_um": o.q.round(3).tolist(),
+                                 "solve_ms": 1e3 * res.solve_time_s})
                     stage.move(res.u)
                     prev = res.u
             sel = (model.info.get("noise_selection") or {}).get("selected")
