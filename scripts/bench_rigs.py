@@ -43,7 +43,7 @@ Methods (columns):
   again, which reads the noise floor; microctl.measurement.design);
 - ``refined``: the default, trained on as many moves of which 40 % are refinement moves (rounds of
   40 after the designed ones, each chosen where the model is least sure of the optimum, then
-  training again: ``microctl collect --refine``, microctl.control.refine);
+  training again: ``microctl learn``, microctl.api.learn, microctl.control.refine);
 - ``told`` (a reference): the default told which dictionary quantities carry the rig's true
   scatter (``noise_sources``, microctl.models.declared_sources; rig_families.FamilyRig.true_sources)
   instead of selecting them. A family bar the ``told`` reference misses too is not missed by the
@@ -100,7 +100,7 @@ from microctl.control.controller import (  # noqa: E402
 )
 from microctl.control.context import ByDirection  # noqa: E402
 from microctl.control.oracle import OracleController  # noqa: E402
-from microctl.control.refine import refinement_commands  # noqa: E402
+from microctl import api  # noqa: E402
 from microctl.measurement.design import training_moves  # noqa: E402
 from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
@@ -162,8 +162,8 @@ METHODS = {
     "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
     "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
     # the default, with the same number of training moves of which 40 % are refinement moves
-    # (microctl collect --refine; microctl.control.refine): collect, train, then rounds of
-    # REFINE_ROUND_MOVES moves chosen by the model, each followed by training again
+    # (microctl learn, microctl.api.learn): collect, train, then rounds of 40 moves chosen by
+    # the model (microctl.control.refine), each followed by training again
     "refined": Method("refined", "covering", ResidualModelSettings(), ControllerSettings(), refine=True),
     # the default trained on the covering design with every 20th move a still move (the previous
     # command again: microctl.measurement.design, covering_still), which reads the noise floor
@@ -254,23 +254,19 @@ def make_rig(seed: int) -> tuple[StageConfig, int]:
 # --------------------------------------------------------------------------- one rig
 
 
-#: Method ``refined``: refinement rounds of this many moves, as many as fit in REFINE_SHARE of the
-#: training moves (1 of 125, 2 of 200), the targets of their episodes drawn from REFINE_TARGETS_UM
-#: (the working range of TARGETS_UM with a margin; what a user would give ``--target-range``).
-REFINE_ROUND_MOVES, REFINE_SHARE, REFINE_TARGETS_UM = 40, 0.4, (0.0, 30.0)
-
-
-def refine_rounds(n: int) -> int:
-    """Refinement rounds of the ``refined`` method for ``n`` training moves."""
-    return int(REFINE_SHARE * n) // REFINE_ROUND_MOVES
+#: Method ``refined``: ``microctl learn`` (:func:`microctl.api.learn`): 40 % of the training moves
+#: as refinement rounds of 40 (1 of 125, 2 of 200), the targets of their episodes drawn from
+#: REFINE_TARGETS_UM (the working range of TARGETS_UM with a margin; what a user would give
+#: ``--target-range``).
+REFINE_TARGETS_UM = (0.0, 30.0)
 
 
 def collect_and_train(open_stage, cfg: StageConfig, afm: AnalyticForwardModel, meth: Method, n: int, seed: int,
                       settings: ResidualModelSettings):
     """What a user runs: ``collect`` (``meth.design`` moves, seed ``seed``) to a log, ``train``; for a
-    refining method first ``n - R`` designed moves, then R refinement moves in rounds
-    (``collect --refine MODEL --append``, targets seeded by ``seed`` and the round), each
-    followed by ``train``. ``open_stage()`` gives the stage the moves run on (one stage for all).
+    refining method ``learn`` (:func:`microctl.api.learn`: the design, then refinement rounds,
+    each followed by training, targets seeded by ``seed`` and the round). ``open_stage()``
+    gives the stage the moves run on (one stage for all).
 
     Returns
     -------
@@ -279,18 +275,19 @@ def collect_and_train(open_stage, cfg: StageConfig, afm: AnalyticForwardModel, m
     log : MeasurementLog
         Every executed move (designed and refinement), in order.
     """
-    rounds = refine_rounds(n) if meth.refine else 0
     with tempfile.TemporaryDirectory() as tmp, open_stage() as stage:
         log_path = Path(tmp) / "train.csv"
-        run_collect(stage, training_moves(afm, meth.design, n - rounds * REFINE_ROUND_MOVES, seed), log_path, quiet=True)
-        for r in range(rounds + 1):
-            log = read_log(log_path, cfg.stage, min_rows=5)
-            data = residual_dataset(log, afm)
+        model = None
+        if meth.refine:
+            model = api.learn(api.Stage(cfg, afm), n, log_path, seed=seed, design=meth.design,
+                              target_range_um=REFINE_TARGETS_UM, settings=settings, controller=meth.controller,
+                              backend=stage)
+        else:
+            run_collect(stage, training_moves(afm, meth.design, n, seed), log_path, quiet=True)
+        log = read_log(log_path, cfg.stage, min_rows=5)
+        data = residual_dataset(log, afm)
+        if model is None:
             model = train_residual_model(data, afm, settings)
-            if r < rounds:
-                moves = refinement_commands(EAFM(afm, model), REFINE_ROUND_MOVES, REFINE_TARGETS_UM, [seed, r],
-                                            lambda: stage.state, meth.controller)
-                run_collect(stage, moves, log_path, quiet=True, mode="append", total=REFINE_ROUND_MOVES)
     return model, data, log
 
 

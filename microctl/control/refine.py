@@ -36,8 +36,8 @@ from microctl.errors import ConfigError, SolveError
 from microctl.models import direction as directions
 from microctl.models.eafm import EAFM
 
-__all__ = ["RefineMove", "REFINE_STRATEGIES", "EXPLORE_RATIO", "EPISODE_TARGETS", "explore", "refinement_moves",
-           "refinement_commands", "check_target_range"]
+__all__ = ["RefineMove", "REFINE_STRATEGIES", "EXPLORE_RATIO", "EPISODE_TARGETS", "ROUND_MOVES", "REFINE_SHARE",
+           "explore", "refinement_moves", "refinement_commands", "check_target_range", "learning_rounds"]
 
 #: ``uncertainty``: the least certain candidate optimum (default); ``on_policy``: the controller's choice.
 REFINE_STRATEGIES = ("uncertainty", "on_policy")
@@ -45,6 +45,15 @@ REFINE_STRATEGIES = ("uncertainty", "on_policy")
 EXPLORE_RATIO = 2.0
 #: Targets per episode from the zero state (the incremental experiment's four).
 EPISODE_TARGETS = 4
+#: Learning a stage (``microctl learn``, :func:`microctl.api.learn`): refinement rounds of this many
+#: moves, as many as fit in :data:`REFINE_SHARE` of the moves (1 round of 125 moves, 2 of 200);
+#: the rest is the designed log the first model is trained on.
+ROUND_MOVES, REFINE_SHARE = 40, 0.4
+
+
+def learning_rounds(n_moves: int) -> int:
+    """Refinement rounds of :data:`ROUND_MOVES` moves in a learning run of ``n_moves`` moves in all."""
+    return int(REFINE_SHARE * n_moves) // ROUND_MOVES
 
 
 @dataclass(frozen=True)
@@ -86,15 +95,17 @@ def explore(ctrl: OptimalController, eafm: EAFM, target_um: float, s: np.ndarray
     return (U[k], "explore") if k > 0 and unc[k] > unc[0] else (u_opt, "eafm")
 
 
-def check_target_range(eafm: EAFM, target_range_um, where: str) -> tuple[float, float]:
+def check_target_range(eafm, target_range_um, where: str) -> tuple[float, float]:
     """``target_range_um`` as (lo, hi) inside the AFM's reachable range; None gives that range.
+
+    ``eafm`` is the model (an EAFM, whose AFM is read) or the AnalyticForwardModel itself.
 
     Raises
     ------
     ConfigError
         Naming ``where`` and the reachable range, for a range that is not lo < hi inside it.
     """
-    lo_r, hi_r = eafm.afm.t_range()
+    lo_r, hi_r = (eafm.afm if isinstance(eafm, EAFM) else eafm).t_range()
     if target_range_um is None:
         return float(lo_r), float(hi_r)
     lo, hi = (float(v) for v in target_range_um)

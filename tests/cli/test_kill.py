@@ -1,9 +1,9 @@
 """A kill at any moment of a command that writes leaves the old file or the new one (issue 22, items 14, 18).
 
 Every command that writes over an existing output (``gp fit``, ``gp predict``, ``train``,
-``collect --force``, ``diagnose``) is started as a process and sent SIGKILL or SIGINT at a
+``collect --force``, ``diagnose``, ``learn --force``) is started as a process and sent SIGKILL or SIGINT at a
 seeded random time (from the moment its entry point runs to past its end, :func:`_start`), 56
-trials in all. Afterwards every output is either byte-for-byte the old file or a complete new
+trials in all (plus 6 of ``diagnose``, 6 of ``learn`` and 6 of ``experiment``). Afterwards every output is either byte-for-byte the old file or a complete new
 one that reads, never torn or missing; a SIGINT run ends with exit 130 and the one line
 "microctl: interrupted" (or 0 when it finished first), never a traceback.
 """
@@ -23,7 +23,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 TABLE1 = ROOT / "configs/stage/table1.yaml"
 MCYCLE = ROOT / "tests/data/mcycle.csv"
-TRIALS_PER_COMMAND = 14  # x 4 commands = 56 trials (plus 6 of diagnose and 6 of experiment)
+TRIALS_PER_COMMAND = 14  # x 4 commands = 56 trials (plus 6 of diagnose, 6 of learn and 6 of experiment)
+#: The long commands get fewer trials (each runs for seconds).
+LONG_TRIALS = {"diagnose": 6, "learn": 6}
 
 
 #: The command line's entry point as the ``microctl`` console script runs it (``from microctl.cli
@@ -89,6 +91,7 @@ def work(tmp_path_factory):
     _run(["train", "log.csv", "--config", str(TABLE1), "-o", "model.npz", "--restarts", "1", "--quiet"], d)
     _run(["collect", "--config", str(TABLE1), "-n", "40", "-o", "log2.csv", "--quiet"], d)
     _run(["diagnose", "log.csv", "--config", str(TABLE1), "--out", "diag", "--no-gp", "--quiet"], d)
+    _run(["learn", "--config", str(TABLE1), "-n", "100", "--log", "learned.csv", "-o", "learned.npz", "--quiet"], d)
     return d
 
 
@@ -103,6 +106,10 @@ COMMANDS = {
     "diagnose": (["diagnose", "log.csv", "--config", str(TABLE1), "--out", "diag", "--no-gp", "--quiet",
                   "--seed", "4"], {"diag/report.json": _valid_report, "diag/extended.yaml": lambda p: p.read_text(),
                                    "diag/report.md": lambda p: p.read_text()}, 8.0),
+    # the log is replaced after the designed moves and appended to in each round; the model is
+    # written after every fit: a kill leaves the old pair, or a whole log and a whole model
+    "learn": (["learn", "--config", str(TABLE1), "-n", "100", "--seed", "5", "--log", "learned.csv", "-o",
+               "learned.npz", "--force", "--quiet"], {"learned.csv": _valid_log, "learned.npz": _valid_npz}, 12.0),
 }
 
 
@@ -149,7 +156,7 @@ def test_kill_experiment_never_leaves_a_torn_file(work):
 def test_kill_leaves_old_or_new_file(work, name):
     argv, outputs, span = COMMANDS[name]
     rng = np.random.default_rng(sum(map(ord, name)))  # seeded per command
-    trials = 6 if name == "diagnose" else TRIALS_PER_COMMAND
+    trials = LONG_TRIALS.get(name, TRIALS_PER_COMMAND)
     for trial in range(trials):
         old = {rel: (work / rel).read_bytes() for rel in outputs}
         sig = signal.SIGKILL if trial % 2 == 0 else signal.SIGINT

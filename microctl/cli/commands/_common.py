@@ -45,6 +45,17 @@ def add_seed(parser: argparse.ArgumentParser, help_text: str) -> None:
     parser.add_argument("--seed", type=seed, default=0, metavar="S", help=help_text)
 
 
+def target_range(text: str) -> tuple[float, float]:
+    """argparse type of ``--target-range``: two numbers LO,HI (µm)."""
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LO,HI (two numbers in µm, e.g. 0,30), got '{text}'") from None
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         if a.exists() and b.exists():

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from microctl.backends import make_backend
 from microctl.backends.collect import run_collect
-from microctl.cli.commands._common import add_quiet, add_seed, check_output_file
+from microctl.cli.commands._common import add_quiet, add_seed, check_output_file, target_range
 from microctl.control.refine import check_target_range, refinement_commands
 from microctl.errors import ConfigError
 from microctl.measurement.design import DEFAULT_DESIGN, DESIGNS, training_moves
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"training design (default {DEFAULT_DESIGN}; see docs/experiments.md)")
     p.add_argument("--refine", metavar="MODEL.npz",
                    help="choose the moves with this trained model of the stage (not with --design)")
-    p.add_argument("--target-range", metavar="LO,HI", type=_target_range,
+    p.add_argument("--target-range", metavar="LO,HI", type=target_range,
                    help="with --refine: the targets of its episodes, µm (default: every reading the stage can reach)")
     p.add_argument("-o", "--out", required=True, metavar="LOG.csv",
                    help="measurement log to write (an existing one is refused unless --force or --append)")
@@ -50,17 +50,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="add the moves to an existing log of this stage (seq and time_s continue)")
     add_quiet(p)
     p.set_defaults(func=_run)
-
-
-def _target_range(text: str) -> tuple[float, float]:
-    """argparse type of ``--target-range``: two numbers LO,HI."""
-    parts = text.split(",")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        return float(parts[0]), float(parts[1])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LO,HI (two numbers in µm, e.g. 0,30), got '{text}'") from None
 
 
 def _refinement(args: argparse.Namespace, afm: AnalyticForwardModel):
