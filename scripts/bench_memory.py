@@ -43,6 +43,7 @@ import numpy as np
 
 from microctl import api
 from microctl.backends.simulated import SimulatedStage
+from microctl.models.afm import AnalyticForwardModel
 from microctl.stage.causes import REGISTRY, Hysteresis, preload_compression_um
 from microctl.testing.plant import simulate, with_effects
 
@@ -61,11 +62,11 @@ def _rig(base: api.Stage, k: int) -> tuple[api.Stage, api.Stage, api.Stage, tupl
                      **{n: getattr(shipped, n) for n, c in REGISTRY.items() if c.kind == "static"})
     known = replace(base.config, stage=replace(base.config.stage, corrections=static))
     cfg = with_effects(known, replace(shipped, hysteresis=loop), seed=7100 + k)
-    plain = api.Stage(cfg, api.AnalyticForwardModel(cfg.stage))
+    plain = api.Stage(cfg, AnalyticForwardModel(cfg.stage))
     cfg_m = replace(cfg, stage=replace(cfg.stage, corrections=replace(static, hysteresis=loop)))
     cfg_0 = with_effects(known, shipped, seed=7100 + k)
-    return (plain, api.Stage(cfg_m, api.AnalyticForwardModel(cfg_m.stage)),
-            api.Stage(cfg_0, api.AnalyticForwardModel(cfg_0.stage)), loop)
+    return (plain, api.Stage(cfg_m, AnalyticForwardModel(cfg_m.stage)),
+            api.Stage(cfg_0, AnalyticForwardModel(cfg_0.stage)), loop)
 
 
 def _diagnosed(plain: api.Stage, data, k: int) -> api.Stage:
@@ -74,7 +75,7 @@ def _diagnosed(plain: api.Stage, data, k: int) -> api.Stage:
 
     ext = run_diagnosis(plain.config, data, seed=k, gain=False).extended_config
     ext = replace(ext, backend=plain.config.backend)
-    return api.Stage(ext, api.AnalyticForwardModel(ext.stage))
+    return api.Stage(ext, AnalyticForwardModel(ext.stage))
 
 
 def _named(stage: api.Stage) -> str:
