@@ -16,6 +16,7 @@ from microctl.measurement.log import MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.eafm import EAFM
 from microctl.stage.config import StageConfig, load_stage_config
+from microctl.util.fields import check_moves
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,9 +169,8 @@ def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str
     from microctl.backends.collect import run_collect
     from microctl.measurement.design import training_moves
 
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
-    moves = training_moves(stage.afm, design, int(n), seed)
+    n = check_moves(n, 1)
+    moves = training_moves(stage.afm, design, n, seed)
     return _on_backend(stage, backend, lambda b: run_collect(b, moves, out, quiet=True))
 
 
@@ -184,16 +184,15 @@ def refine(stage: Stage, model: Any, n: int, log: str | Path, *, seed: int = 0,
     from microctl.backends.collect import run_collect
     from microctl.control.refine import check_target_range, refinement_commands
 
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ConfigError(f"n: expected a number of moves >= 1, got {n!r}")
+    n = check_moves(n, 1)
     if not Path(log).is_file():
         raise ConfigError(f"{log}: no such measurement log; refine appends to the log the model was trained on")
     eafm = EAFM(stage.afm, model)  # a model of another stage is refused
     targets = check_target_range(eafm, target_range_um, "target_range_um")
 
     def run(b) -> int:
-        moves = refinement_commands(eafm, int(n), targets, seed, lambda: b.state)
-        return run_collect(b, moves, log, quiet=True, mode="append", total=int(n))
+        moves = refinement_commands(eafm, n, targets, seed, lambda: b.state)
+        return run_collect(b, moves, log, quiet=True, mode="append", total=n)
 
     return _on_backend(stage, backend, run)
 

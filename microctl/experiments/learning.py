@@ -16,8 +16,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from microctl.backends.collect import run_collect
 from microctl.control.controller import ControllerSettings
 from microctl.control.refine import ROUND_MOVES, check_target_range, learning_rounds, refinement_commands
@@ -28,6 +26,7 @@ from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
 from microctl.models.floor_check import with_floor_check
 from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
+from microctl.util.fields import check_moves
 
 __all__ = ["learn_stage"]
 
@@ -79,14 +78,13 @@ def learn_stage(afm: AnalyticForwardModel, stage: Any, backend: Any, n: int, log
     FittedVHGPR
         The last fit, on all n moves.
     """
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 5:
-        raise ConfigError(f"n: expected a number of moves >= 5 (a model needs 5 to train on), got {n!r}")
+    n = check_moves(n, 5, why=" (a model needs 5 to train on)")
     log = Path(log)
     if log.exists() and not replace_log:
         raise ConfigError(f"{log}: the file exists; refusing to overwrite it (replace it, or choose another file name)")
     target_range_um = check_target_range(afm, target_range_um, "target_range_um")
     settings = settings if settings is not None else ResidualModelSettings()
-    rounds = learning_rounds(int(n))
+    rounds = learning_rounds(n)
     tell = say if say is not None else (lambda text: None)
 
     def fit(r: int):
@@ -100,7 +98,7 @@ def learn_stage(afm: AnalyticForwardModel, stage: Any, backend: Any, n: int, log
             tell(f"learn: warning: {check.describe()}")
         return model
 
-    designed = training_moves(afm, design, int(n) - rounds * ROUND_MOVES, seed)
+    designed = training_moves(afm, design, n - rounds * ROUND_MOVES, seed)
     run_collect(backend, designed, log, quiet=quiet, mode="replace" if log.exists() else "write")
     model = fit(0)
     for r in range(rounds):

@@ -17,6 +17,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, Iterable
 
+import numpy as np
+
 from microctl.errors import ConfigError
 
 #: How far from 1 the length of a "unit" vector may be.
@@ -240,6 +242,14 @@ class Rule:
         if self.hi is not None and x > self.hi:
             raise bad
         return x
+
+
+def check_moves(n: Any, minimum: int, name: str = "n", why: str = "") -> int:
+    """``n`` as a number of moves of at least ``minimum`` (an int or NumPy integer, not a bool);
+    ConfigError naming ``name`` (and ``why``, e.g. " (a model needs 5 to train on)") otherwise."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < minimum:
+        raise ConfigError(f"{name}: expected a number of moves >= {minimum}{why}, got {n!r}")
+    return int(n)
 
 
 def setting(default: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False,

@@ -127,3 +127,16 @@ def test_an_existing_log_is_refused_unless_replaced(tmp_path):
     assert log.read_text() == "keep me\n"
     api.learn(stage, 10, log, replace_log=True, settings=ResidualModelSettings(restarts=1))
     assert len(api.read_measurements(log, stage)) == 10
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"n": 4}, r"n: expected a number of moves >= 5 \(a model needs 5 to train on\), got 4"),
+    ({"n": True}, r"n: expected a number of moves >= 5 .*got True"),
+    ({"n": 100, "target_range_um": (0.0, 500.0)}, r"target_range_um: 0,500 µm is not inside the stage's reachable range"),
+])
+def test_api_refusals_name_the_value_and_move_nothing(tmp_path, kwargs, match):
+    stage = api.load_stage(CONFIG)
+    log = tmp_path / "l.csv"
+    with pytest.raises(ConfigError, match=match):
+        api.learn(stage, log=log, **kwargs)
+    assert not log.exists()

@@ -63,6 +63,7 @@ def _run(args: argparse.Namespace) -> int:
     stage = api.load_stage(args.config)
     targets = check_target_range(stage.afm, args.target_range, "--target-range")  # before any move
     rounds = learning_rounds(args.n)
+    designed = f"{args.n - rounds * ROUND_MOVES} designed"
     t0 = time.perf_counter()
 
     def say(text: str) -> None:
@@ -73,13 +74,13 @@ def _run(args: argparse.Namespace) -> int:
         with stage.open_backend() as backend:
             for note in backend.notes:
                 say(f"learn: {note}")
-            say(f"learn: {args.n - rounds * ROUND_MOVES} designed moves, then {rounds} refinement round(s) of "
+            say(f"learn: {designed} moves, then {rounds} refinement round(s) of "
                 f"{ROUND_MOVES}")
             model = api.learn(stage, args.n, args.log, out=args.out, seed=args.seed, design=args.design,
                               target_range_um=targets, backend=backend, replace_log=args.force,
                               quiet=args.quiet, say=say)
     # the result on stdout (progress goes to stderr): shown also with --quiet
-    print(f"learn: {args.n} moves ({args.n - rounds * ROUND_MOVES} designed + {rounds} refinement round(s) of "
+    print(f"learn: {args.n} moves ({designed} + {rounds} refinement round(s) of "
           f"{ROUND_MOVES}) on the {stage.config.backend.kind} backend written to {args.log}; model for stage "
           f"'{stage.name}' written to {args.out} ({time.perf_counter() - t0:.1f} s)")
     print(f"learn: {describe_noise(noise_summary(model, stage.afm))}")
