@@ -17,6 +17,7 @@ against IPOPT at random targets).
 from __future__ import annotations
 
 import itertools
+import math
 from typing import Any, Callable, NamedTuple
 
 import casadi as ca
@@ -79,6 +80,7 @@ class FastSQP:
         self._buffer = self._bind_buffer()
         self.K = np.asarray(K, dtype=float)
         self.lo, self.hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+        self._lo_tol, self._hi_tol = self.lo - 1e-9, self.hi + 1e-9  # the accepted ranges, computed once
         self.max_iter = max_iter
         self.constraint_tol = constraint_tol
         self.kkt_tol = kkt_tol
@@ -172,7 +174,7 @@ class FastSQP:
         slope = g @ d - nu * abs(t - target)  # directional derivative of the merit (a'd = -c)
         # differences below this are round-off (of J, and of t at the constraint's tolerance)
         noise = 1e-12 * max(1.0, abs(merit0)) + nu * 1e-2 * self.constraint_tol
-        polish = np.max(np.abs(d)) <= 1e-7 * (1.0 + np.max(np.abs(u)))  # a last correction: taken whole
+        polish = np.abs(d).max() <= 1e-7 * (1.0 + np.abs(u).max())  # a last correction: taken whole
         alpha = 1.0
         for _ in range(12):
             un = u + alpha * d
@@ -186,11 +188,11 @@ class FastSQP:
         """Stationarity and complementarity residual of the scaled problem at u."""
         stat = g - lam * gt - self.A.T @ mu
         comp = np.abs(mu * (self.A @ u - self.b))
-        return float(max(np.max(np.abs(stat)), np.max(comp, initial=0.0)))
+        return float(max(np.abs(stat).max(), comp.max(initial=0.0)))
 
     def _in_range(self, u: np.ndarray) -> bool:
         q = self.K @ u
-        return bool(np.all(q >= self.lo - 1e-9) and np.all(q <= self.hi + 1e-9))
+        return bool((q >= self._lo_tol).all() and (q <= self._hi_tol).all())
 
 
 class ActiveSetQP:
@@ -217,6 +219,19 @@ class ActiveSetQP:
         self._groups = [np.array([w for w in sets if len(w) == r], dtype=int).reshape(-1, r) if r else
                         np.zeros((1, 0), dtype=int) for r in range(n_p)]
         self.usable = len(sets) <= 2000
+        self._At = self.A.T
+        # each group's KKT matrices without the step's B and a: the active rows of A do not
+        # change between steps, so they are filled once here and copied per step (the same numbers)
+        self._templates = []
+        for W in self._groups:
+            k, size = W.shape
+            m = n_p + 1 + size
+            M = np.zeros((k, m, m))
+            if size:
+                AW = self.A[W]  # (k, size, n)
+                M[:, :n_p, n_p + 1:] = -AW.transpose(0, 2, 1)
+                M[:, n_p + 1:, :n_p] = AW
+            self._templates.append((W, M))
 
     def solve(self, B: np.ndarray, g: np.ndarray, a: np.ndarray, c: float, slack: np.ndarray
               ) -> tuple[np.ndarray, float, np.ndarray] | None:
@@ -242,25 +257,23 @@ class ActiveSetQP:
         """
         n = B.shape[0]
         tol = 1e-9 * (1.0 + np.abs(slack))
-        for W in self._groups:
+        low = slack - tol
+        neg_a, neg_g = -a, -g
+        for W, M0 in self._templates:
             k, size = W.shape
-            m = n + 1 + size
-            M = np.zeros((k, m, m))
-            rhs = np.zeros((k, m))
+            M = M0.copy()
+            rhs = np.zeros((k, n + 1 + size))
             M[:, :n, :n] = B
-            M[:, :n, n] = -a
+            M[:, :n, n] = neg_a
             M[:, n, :n] = a
-            rhs[:, :n] = -g
+            rhs[:, :n] = neg_g
             rhs[:, n] = -c
             if size:
-                AW = self.A[W]  # (k, size, n)
-                M[:, :n, n + 1:] = -AW.transpose(0, 2, 1)
-                M[:, n + 1:, :n] = AW
                 rhs[:, n + 1:] = slack[W]
             X, ok = _solve_batch(M, rhs)
             D, MU = X[:, :n], X[:, n + 1:]
-            good = ok & np.all(MU >= -1e-12, axis=1) & np.all(D @ self.A.T >= slack - tol, axis=1)
-            if np.any(good):
+            good = ok & (MU >= -1e-12).all(axis=1) & (D @ self._At >= low).all(axis=1)
+            if good.any():
                 j = int(np.flatnonzero(good)[0])
                 mu = np.zeros(self.A.shape[0])
                 mu[W[j]] = MU[j]
@@ -291,7 +304,7 @@ def _reduced_convex(B: np.ndarray, a: np.ndarray) -> np.ndarray:
     R = Z.T @ B @ Z
     try:
         np.linalg.cholesky(R)
-        if np.min(np.diag(R)) > 1e-12 * np.max(np.abs(R)):
+        if R.diagonal().min() > 1e-12 * np.abs(R).max():
             return B  # positive definite on the tangent space: nothing to change
     except np.linalg.LinAlgError:
         pass
@@ -321,7 +334,7 @@ def _solve_batch(M: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray
                 X[k] = np.nan
     res = np.abs(np.einsum("kij,kj->ki", M, X) - rhs).max(axis=1)
     scale = np.abs(M).max(axis=(1, 2)) * np.abs(X).max(axis=1) + np.abs(rhs).max(axis=1)
-    ok = np.all(np.isfinite(X), axis=1) & (res <= 1e-9 * (scale + 1e-300))
+    ok = np.isfinite(X).all(axis=1) & (res <= 1e-9 * (scale + 1e-300))
     return np.where(ok[:, None], X, 0.0), ok
 
 
@@ -329,7 +342,7 @@ def _null_basis(a: np.ndarray) -> np.ndarray:
     """An orthonormal basis of the vectors orthogonal to ``a`` (shape (n,)), shape (n, n - 1), by one
     Householder reflection (the identity's last n - 1 columns when a = 0)."""
     n = a.shape[0]
-    na = float(np.linalg.norm(a))
+    na = math.sqrt(float(a.dot(a)))  # np.linalg.norm's own arithmetic, without its call overhead
     if na == 0.0:
         return np.eye(n)[:, 1:]
     v = a / na
