@@ -86,6 +86,10 @@ class AFMController(BaseController):
                      "g": ca.vertcat(ca.dot(ca.DM(afm.w_pred), u) - p[0], Ku)}
         self._solver: ca.Function | None = None
         self._qp = ActiveSetQP(afm.K, afm.lo, afm.hi)
+        # the plane minimiser's KKT matrix and 2 K^T depend on the stage alone: formed once
+        K, w = afm.K, afm.w_pred
+        self._two_kt = 2 * K.T
+        self._kkt = np.block([[self._two_kt @ K, w[:, None]], [w[None, :], np.zeros((1, 1))]])
 
     def _ipopt(self) -> ca.Function:
         """IPOPT on the QP, built at its first use: only a command whose plane minimiser leaves
@@ -155,11 +159,10 @@ class AFMController(BaseController):
         if not (lo - self.settings.constraint_tol <= target <= hi + self.settings.constraint_tol):
             raise unreachable(target, s, "AFM", lo, hi)
         d = self.rset.d_of_target(target)
-        K, w, qp = self.afm.K, self.afm.w_pred, s[1:]
+        K, qp = self.afm.K, s[1:]
         # unconstrained-in-range minimiser of ||K u - q_prev||^2 on the plane w·u = d (KKT system)
         n = K.shape[1]
-        kkt = np.block([[2 * K.T @ K, w[:, None]], [w[None, :], np.zeros((1, 1))]])
-        u0 = np.linalg.solve(kkt, np.concatenate([2 * K.T @ qp, [d]]))[:n]
+        u0 = np.linalg.solve(self._kkt, np.concatenate([self._two_kt @ qp, [d]]))[:n]
         ws = self.afm.workspace
         x, how = self._exact(u0, d, qp)
         if x is not None:

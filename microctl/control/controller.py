@@ -414,7 +414,7 @@ class OptimalController(EAFMController):
             if least is None:
                 return res
             u_least = least.u
-            if np.max(np.abs(self.afm.K @ (res.u - u_least))) <= SAME_COMMAND_UM:
+            if np.abs(self.afm.K @ (res.u - u_least)).max() <= SAME_COMMAND_UM:
                 return replace(res, choice="optimum: it is the least motion",
                                solve_time_s=time.perf_counter() - t0)
             p, r_opt, r_least = prob_better(self.eafm, res.state, res.u, u_least)
