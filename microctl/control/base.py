@@ -35,7 +35,7 @@ def parse_state(afm: AnalyticForwardModel, state: np.ndarray | None) -> np.ndarr
 def in_range(afm: AnalyticForwardModel, u: np.ndarray, tol: float) -> bool:
     """``lo - tol <= K u <= hi + tol`` for the pose u, shape (n_p,)."""
     q = afm.K @ u
-    return bool(np.all(q >= afm.lo - tol) and np.all(q <= afm.hi + tol))
+    return bool((q >= afm.lo - tol).all() and (q <= afm.hi + tol).all())
 
 
 class BaseController:

@@ -95,7 +95,7 @@ class EAFMSurface:
                 (t, dt), grad = at_start, None
             else:  # the gradient only where a step is taken (the last evaluation is a check)
                 t, grad = self.eafm.mean_lazy_grad_u(s, U)
-            if np.all(np.abs(t - target) <= done):
+            if (np.abs(t - target) <= done).all():
                 return U, np.abs(t - target)
             if grad is not None:
                 dt = grad()

@@ -206,6 +206,10 @@ class Kernel:
                              "one row per lengthscale")
         if M is not None and self.trend is not None:
             raise ValueError("a kernel with an input_map cannot carry a feature trend (the trend reads raw inputs)")
+        # d and d_in, read by every evaluation (:meth:`_cols`), counted once
+        d = int(np.size(self.log_lengthscales))
+        object.__setattr__(self, "_d", d)
+        object.__setattr__(self, "_d_in", d if M is None else int(np.shape(M)[1]))
 
     @property
     def spec(self) -> KernelSpec:
@@ -240,18 +244,19 @@ class Kernel:
     @property
     def d(self) -> int:
         """Number of lengthscales: the kernel's inputs (the first d columns, or ``M x``)."""
-        return int(np.size(self.log_lengthscales))
+        return self._d
 
     @property
     def d_in(self) -> int:
         """Number of input columns the kernel reads (d, or the input map's columns)."""
-        return self.d if self.input_map is None else int(np.shape(self.input_map)[1])
+        return self._d_in
 
     def _cols(self, X: np.ndarray) -> np.ndarray:
         """The kernel's inputs from X (see the module docstring): its first d_in columns, mapped
         by the input map if there is one; shape (m, d)."""
         X = np.asarray(X, dtype=float)
-        X = X[:, :self.d_in] if X.ndim == 2 and X.shape[1] > self.d_in else X
+        d_in = self._d_in
+        X = X[:, :d_in] if X.ndim == 2 and X.shape[1] > d_in else X
         return X if self.input_map is None else X @ np.asarray(self.input_map, dtype=float).T
 
     def inputs(self, X: np.ndarray) -> np.ndarray:
@@ -399,8 +404,10 @@ class Kernel:
             grad = grad + np.einsum("j,mjk->mk", terms.trend, self.trend.gradients(Xs))
         if self.input_map is not None:  # d/dx of k(M x): the chain rule through the map
             grad = grad @ np.asarray(self.input_map, dtype=float)
-        if width > grad.shape[1]:
-            grad = np.hstack([grad, np.zeros((grad.shape[0], width - grad.shape[1]))])
+        if width > grad.shape[1]:  # zero columns after the kernel's (np.hstack's values, one array fewer)
+            out = np.zeros((grad.shape[0], width))
+            out[:, :grad.shape[1]] = grad
+            grad = out
         return grad
 
     # ---- the feature form (the posterior's low-rank variance of f) -----------------
@@ -450,6 +457,35 @@ class Kernel:
         Za, za2 = self._z2(Xa)
         Zb, ab = self.se_remainder_side(Xb) if side_b is None else side_b
         return self.signal_var * np.exp(-0.5 * za2)[:, None] * ab[None, :] * np.expm1(Za @ Zb.T)
+
+    def feature_form(self, X: np.ndarray, side_b: tuple[np.ndarray, np.ndarray]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`features` (m, p), :meth:`se_remainder` against the ``side_b`` of fixed inputs
+        (m, n) and :meth:`diag` (m,) at the rows of X, the same numbers as the three calls, with
+        what they share (the scaled inputs, ``exp(-|z|^2 / 2)``, the trend's features) computed
+        once: f's variance in the feature form reads all three at every evaluation."""
+        if self.input_map is not None:  # diag reads the trend of the mapped inputs: the three calls
+            return self.features(X), self.se_remainder(X, X, side_b=side_b), self.diag(X)
+        Z, z2 = self._z2(X)
+        Xc = self._cols(X)
+        az = np.exp(-0.5 * z2)
+        trend = None if self.trend is None else self.trend.values(X)  # X's first k columns, as Xc's
+        cols = [az[:, None]]
+        if self.log_bias_var is not None:
+            cols.append(np.ones((Z.shape[0], 1)))
+        if self.log_linear_vars is not None:
+            cols.append(Xc)
+        if trend is not None:
+            cols.append(trend)
+        Zb, ab = side_b
+        E = self.signal_var * az[:, None] * ab[None, :] * np.expm1(Z @ Zb.T)
+        diag = np.full(Xc.shape[0], self.signal_var + self.bias_var)
+        v = self.linear_vars
+        if v is not None:
+            diag += (Xc * Xc) @ v
+        if trend is not None:
+            diag += self.trend.var * np.einsum("ij,ij->i", trend, trend)
+        return np.hstack(cols), E, diag
 
     def se_remainder_side(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What :meth:`se_remainder` reads of one side X (n, d): Z = X / l (n, d) and exp(-|z|^2 / 2) (n,)."""

@@ -189,10 +189,8 @@ class Posterior:
         (in the feature form when ``f_low_rank``: the class docstring; then Kf is not read)."""
         if self.f_low_rank:
             t = self.f_low_rank_terms()
-            kf = self.f_kernel
-            psi = kf.features(xs)
-            E = kf.se_remainder(xs, self.X, side_b=(t["Z"], t["a"]))
-            return kf.diag(xs) - np.einsum("ij,ij->i", psi, psi @ t["M"] + 2.0 * (E @ t["H"].T))
+            psi, E, diag = self.f_kernel.feature_form(xs, (t["Z"], t["a"]))
+            return diag - np.einsum("ij,ij->i", psi, psi @ t["M"] + 2.0 * (E @ t["H"].T))
         v = self.chol_inverse("f") @ Kf.T
         return self.f_kernel.diag(xs) - np.einsum("ij,ij->j", v, v)
 

@@ -198,6 +198,8 @@ class EAFM:
                               f"context); the EAFM of stage '{afm.stage.name}' needs x = [s; u] with {self.n_x} "
                               f"(eq. 3), optionally followed by the {self.n_q} actuators' last directions")
         self.direction = self._checked_direction(direction)
+        #: the context columns :meth:`_x` appends (the actuators' last directions), counted once
+        self._n_context_cols = self.n_q if self.uses_direction else 0
         self.posterior: Posterior = model.posterior
         self._function: ca.Function | None = None
         self._alternatives: Alternatives | None = None
@@ -306,15 +308,19 @@ class EAFM:
 
     # ---- NumPy reference -----------------------------------------------------------
     def _x(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-        u = np.atleast_2d(np.asarray(u, dtype=float))
-        s = np.atleast_2d(np.asarray(s, dtype=float))
+        u = np.asarray(u, dtype=float)
+        s = np.asarray(s, dtype=float)
+        # one row where a vector is given (np.atleast_2d's values, without its call overhead)
+        u = u.reshape(1, -1) if u.ndim < 2 else u
+        s = s.reshape(1, -1) if s.ndim < 2 else s
         m = u.shape[0] if s.shape[0] == 1 else s.shape[0]
+        ns, nu = self.n_s, u.shape[1]
         # filled column blocks (a state row broadcast down its block): the values np.hstack gives
-        X = np.empty((m, self.n_s + u.shape[1] + (self.n_q if self.uses_direction else 0)))
-        X[:, :self.n_s] = s
-        X[:, self.n_s:self.n_s + u.shape[1]] = u
-        if self.uses_direction:  # the move's context after x = [s; u]
-            X[:, self.n_s + u.shape[1]:] = self.direction
+        X = np.empty((m, ns + nu + self._n_context_cols))
+        X[:, :ns] = s
+        X[:, ns:ns + nu] = u
+        if self._n_context_cols:  # the move's context after x = [s; u]
+            X[:, ns + nu:] = self.direction
         return X
 
     def predict(self, s: np.ndarray, u: np.ndarray) -> EAFMPrediction:
