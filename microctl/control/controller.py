@@ -358,9 +358,10 @@ class OptimalController(EAFMController):
         noise sources are weighed in (and, with ``settings.least_motion_credible``, credibly so;
         :mod:`microctl.control.credible`); ``choice`` of the result says which was returned and why.
         """
-        res = super().solve(target_um, state, u_init=u_init)
-        if self.settings.prefer_least_motion:
-            res = self._unless_better(res, u_init)
+        with single_thread_blas():  # one limit for both parts (the blocks inside find it set)
+            res = super().solve(target_um, state, u_init=u_init)
+            if self.settings.prefer_least_motion:
+                res = self._unless_better(res, u_init)
         if self.baseline is None:
             return res
         return with_baseline(self.eafm, res, self.baseline, self.settings.credible_level)

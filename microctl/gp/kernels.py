@@ -74,7 +74,9 @@ def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: 
     """:func:`se_matrix` from the scaled inputs Za (m, d), Zb (n, d) and Zb's squared row norms
     zb2 (n,), which a caller evaluating against fixed training inputs computes once."""
     sq = np.einsum("ij,ij->i", Za, Za)[:, None] + zb2[None, :]
-    sq -= 2.0 * (Za @ Zb.T)
+    cross = Za @ Zb.T
+    cross *= 2.0  # in place: the values of 2.0 * (Za @ Zb.T), one (m, n) array fewer
+    sq -= cross
     np.maximum(sq, 0.0, out=sq)
     sq *= -0.5
     far = None

@@ -88,6 +88,11 @@ class FeatureTrend:
                               f"{sorted(k for k in SHAPES if k not in GATED)}")
         if not math.isfinite(self.log_var):
             raise ConfigError("feature trend: log_var must be finite")
+        # what every evaluation reads of the features, converted once (evaluations run per Newton step)
+        f = self.features
+        object.__setattr__(self, "_matrix", np.asarray(f.matrix, dtype=float))
+        object.__setattr__(self, "_params", np.asarray(f.params, dtype=float))
+        object.__setattr__(self, "_scale", [float(c) for c in f.scale])
 
     @property
     def t(self) -> int:
@@ -97,7 +102,7 @@ class FeatureTrend:
     @property
     def k(self) -> int:
         """Number of (standardised) input columns the features read."""
-        return int(np.asarray(self.features.matrix).shape[1])
+        return int(self._matrix.shape[1])
 
     @property
     def var(self) -> float:
@@ -106,17 +111,17 @@ class FeatureTrend:
 
     def values(self, X: np.ndarray) -> np.ndarray:
         """phi at the rows of the standardised inputs X (columns beyond k ignored), shape (m, t)."""
-        return self.features.values(np.asarray(X, dtype=float)[:, :self.k])
+        return self.features.values(np.asarray(X, dtype=float)[:, :self._matrix.shape[1]])
 
     def gradients(self, X: np.ndarray) -> np.ndarray:
         """d phi_j / d xs at the rows of X, shape (m, t, k)."""
         f = self.features
-        Z = f.linear(np.asarray(X, dtype=float)[:, :self.k])
-        P = np.asarray(f.params, dtype=float)
+        Z = f.linear(np.asarray(X, dtype=float)[:, :self._matrix.shape[1]])
+        P = self._params
         D = np.empty_like(Z)
         for j, kind in enumerate(f.shapes):
-            D[:, j] = shape_derivative(kind, Z[:, j], P[j]) / float(f.scale[j])
-        return D[:, :, None] * np.asarray(f.matrix, dtype=float)[None, :, :]
+            D[:, j] = shape_derivative(kind, Z[:, j], P[j]) / self._scale[j]
+        return D[:, :, None] * self._matrix[None, :, :]
 
     def casadi(self, xs: ca.MX) -> ca.MX:
         """phi at a symbolic standardised input xs (>= k rows), shape (t, 1)."""
