@@ -110,7 +110,6 @@ def prob_better(eafm: EAFM, state: np.ndarray, u_a: np.ndarray, u_b: np.ndarray)
     """
     s = np.asarray(state, dtype=float)
     U = np.vstack([np.asarray(u_a, dtype=float), np.asarray(u_b, dtype=float)])
-    mean, cov = eafm.g_joint(s, U)
-    f_var = eafm.f_var_np(s, U)
+    mean, cov, f_var = eafm.g_joint_and_f_var(s, U)
     r = f_var + np.exp(mean + 0.5 * np.diag(cov))
     return prob_lower(mean, cov, f_var), float(r[0]), float(r[1])

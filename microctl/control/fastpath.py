@@ -112,7 +112,7 @@ class FastSQP:
         n = u.size
         if self._buffer is not None:
             b = self._buffer
-            b.u[:], b.s[:], b.lam[0] = np.ravel(u), np.ravel(s), lam
+            b.u[:], b.s[:], b.lam[0] = u.ravel(), np.ravel(s), lam  # u: the solve's own array
             b.run()
             v = b.out.copy()
         else:
@@ -274,7 +274,7 @@ class ActiveSetQP:
             D, MU = X[:, :n], X[:, n + 1:]
             good = ok & (MU >= -1e-12).all(axis=1) & (D @ self._At >= low).all(axis=1)
             if good.any():
-                j = int(np.flatnonzero(good)[0])
+                j = int(good.argmax())  # the first good active set
                 mu = np.zeros(self.A.shape[0])
                 mu[W[j]] = MU[j]
                 return D[j], float(X[j, n]), mu
@@ -345,9 +345,8 @@ def _null_basis(a: np.ndarray) -> np.ndarray:
     na = math.sqrt(float(a.dot(a)))  # np.linalg.norm's own arithmetic, without its call overhead
     if na == 0.0:
         return np.eye(n)[:, 1:]
-    v = a / na
-    w = v.copy()
-    w[0] += 1.0 if v[0] >= 0 else -1.0  # reflect v onto -+e1 (no cancellation)
-    H = np.eye(n) - 2.0 * np.outer(w, w) / float(w @ w)
+    w = a / na  # v = a / |a|, turned into w in place (v is not read again)
+    w[0] += 1.0 if w[0] >= 0 else -1.0  # reflect v onto -+e1 (no cancellation)
+    H = np.eye(n) - 2.0 * (w[:, None] * w[None, :]) / float(w @ w)  # np.outer's products
     return H[:, 1:]
 

@@ -341,7 +341,10 @@ class EAFM:
     def f_var_np(self, s: np.ndarray, U: np.ndarray) -> np.ndarray:
         """The mean correction's posterior variance at many u, µm², shape (m,): :meth:`predict`'s
         ``f_var`` (to the last bit) without g's part of the prediction (U shape (m, n_p))."""
-        c2 = self.posterior.f_var_std(self._xs(s, U))
+        return self._f_var_of(self._xs(s, U))
+
+    def _f_var_of(self, xs: np.ndarray) -> np.ndarray:
+        c2 = self.posterior.f_var_std(xs)
         np.maximum(c2, 0.0, out=c2)
         return self.model.y_scale ** 2 * c2
 
@@ -398,6 +401,13 @@ class EAFM:
         is for comparing poses on the evidence: :func:`microctl.control.controller.compare_noise`).
         """
         return self.posterior.g_joint(self._xs(s, U))
+
+    def g_joint_and_f_var(self, s: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`g_joint` (mean (m,), covariance (m, m)) and :meth:`f_var_np` (m,) at the rows of U,
+        the same numbers from one standardisation of the inputs (the least-motion rule reads all three)."""
+        xs = self._xs(s, U)
+        mean, cov = self.posterior.g_joint(xs)
+        return mean, cov, self._f_var_of(xs)
 
     def g_np_pairs(self, S: np.ndarray, U: np.ndarray, *, with_gp_var: bool = True
                    ) -> tuple[np.ndarray, np.ndarray]:
