@@ -121,7 +121,12 @@ class RedundantSet:
         lo, hi = box
         pad = margin * np.maximum(hi - lo, 1e-9)
         axes = [np.linspace(a - p, b + p, n) for a, b, p in zip(lo, hi, pad)]
-        C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, r)
+        # the "ij" mesh of the axes, one coordinate per last index (np.stack(np.meshgrid(...),
+        # axis=-1)'s values, copied in by broadcasting without the intermediate grids)
+        mesh = np.empty((n,) * r + (r,))
+        for k, a in enumerate(axes):
+            mesh[..., k] = a.reshape(tuple(-1 if j == k else 1 for j in range(r)))
+        C = mesh.reshape(-1, r)
         V = v0[None, :] + C @ self.N.T
         return V * self.D, tuple([n] * r)
 

@@ -472,13 +472,15 @@ class Kernel:
         Xc = self._cols(X)
         az = np.exp(-0.5 * z2)
         trend = None if self.trend is None else self.trend.values(X)  # X's first k columns, as Xc's
-        cols = [az[:, None]]
-        if self.log_bias_var is not None:
-            cols.append(np.ones((Z.shape[0], 1)))
-        if self.log_linear_vars is not None:
-            cols.append(Xc)
-        if trend is not None:
-            cols.append(trend)
+        # psi's columns written into one array (the values np.hstack of features() gives)
+        blocks = [az[:, None]] + ([1.0] if self.log_bias_var is not None else []) + (
+            [Xc] if self.log_linear_vars is not None else []) + ([trend] if trend is not None else [])
+        widths = [1 if np.ndim(b) < 2 else b.shape[1] for b in blocks]
+        psi = np.empty((Z.shape[0], sum(widths)))
+        col = 0
+        for b, w in zip(blocks, widths):
+            psi[:, col:col + w] = b
+            col += w
         Zb, ab = side_b
         E = self.signal_var * az[:, None] * ab[None, :] * np.expm1(Z @ Zb.T)
         diag = np.full(Xc.shape[0], self.signal_var + self.bias_var)
@@ -487,7 +489,7 @@ class Kernel:
             diag += (Xc * Xc) @ v
         if trend is not None:
             diag += self.trend.var * np.einsum("ij,ij->i", trend, trend)
-        return np.hstack(cols), E, diag
+        return psi, E, diag
 
     def se_remainder_side(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What :meth:`se_remainder` reads of one side X (n, d): Z = X / l (n, d) and exp(-|z|^2 / 2) (n,)."""
