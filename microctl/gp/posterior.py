@@ -218,11 +218,11 @@ class Posterior:
         if self._f_cross is None:  # the training side, computed once (Kernel.cross_terms)
             self._f_cross = self.f_kernel.cross_terms(self.X, np.asarray(self.f_alpha))
         terms = self._f_cross
-        a, se = self.f_kernel.cross_value(xs, terms)
+        a, se, se_w = self.f_kernel.cross_value_parts(xs, terms)
         f = self.y_mean + self.y_scale * a
 
         def grad() -> np.ndarray:
-            return self.y_scale * self.f_kernel.cross_gradient(xs, terms, se) / self.x_scale
+            return self.y_scale * self.f_kernel.cross_gradient(xs, terms, se, se_w) / self.x_scale
         return f, grad
 
     def train_rows(self, which: str, xs: np.ndarray) -> np.ndarray:
