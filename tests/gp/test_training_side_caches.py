@@ -2,7 +2,9 @@
 as computing it per call: ``Kernel.matrix(xs, X, side=rows_side(X))`` against ``matrix(xs, X)``,
 ``se_remainder(xs, X, side_b=se_remainder_side(X))`` against ``se_remainder(xs, X)``, and
 ``cross_value`` / ``cross_gradient`` (the value and the gradient apart, for a Newton step's check)
-against an independent sum over the training rows of ``k(x, X_i) w_i`` and its finite differences."""
+against an independent sum over the training rows of ``k(x, X_i) w_i`` and its finite differences;
+and the calls that compute shared parts once (``feature_form``, ``cross_value_parts`` with the
+gradient's ``se_weights``) against the separate calls, to the last bit."""
 
 from __future__ import annotations
 
@@ -47,3 +49,25 @@ def test_value_and_gradient_apart_match_a_plain_sum_and_central_differences():
         np.testing.assert_allclose(grad, fd, rtol=1e-7, atol=1e-7 * np.max(np.abs(fd)), err_msg=name)
         v2, g2 = k.cross_grad(xs, terms)
         assert np.array_equal(v2, value) and np.array_equal(g2, grad), name
+
+
+def test_shared_parts_give_the_separate_calls_numbers():
+    """``feature_form`` is ``features``, ``se_remainder`` and ``diag`` at once; ``cross_value_parts``'s
+    ``se @ weights``, passed to ``cross_gradient``, is what it computes itself: the same arrays."""
+    rng = np.random.default_rng(5)
+    d = 4
+    X = rng.normal(size=(30, d + 1))
+    w = rng.normal(size=30)
+    for name, k in kernel_family(rng, d).items():
+        side = k.se_remainder_side(X)
+        terms = k.cross_terms(X, w)
+        for m in (1, 6):
+            xs = rng.normal(size=(m, d + 1))
+            psi, E, diag = k.feature_form(xs, side)
+            assert np.array_equal(psi, k.features(xs)), name
+            assert np.array_equal(E, k.se_remainder(xs, X, side_b=side)), name
+            assert np.array_equal(diag, k.diag(xs)), name
+            value, se, se_w = k.cross_value_parts(xs, terms)
+            v1, se1 = k.cross_value(xs, terms)
+            assert np.array_equal(value, v1) and np.array_equal(se, se1), name
+            assert np.array_equal(k.cross_gradient(xs, terms, se, se_w), k.cross_gradient(xs, terms, se)), name

@@ -165,6 +165,9 @@ def test_noise_helpers_match_the_reference(afm, eafm):
     assert np.all(np.linalg.eigvalsh(jc) > -1e-9)
     unc = eafm.noise_uncertainty(s, U)
     assert np.all(unc >= var - 1e-12)
+    # the least-motion rule's three from one standardisation: g_joint's and f_var_np's arrays
+    m2, c2, fv = eafm.g_joint_and_f_var(s, U)
+    assert np.array_equal(m2, jm) and np.array_equal(c2, jc) and np.array_equal(fv, eafm.f_var_np(s, U))
 
 
 def test_negligible_gp_variance_is_bounded_consistently(afm):
