@@ -67,6 +67,7 @@ class Layout:
     p: int = 0
     linear_bounds: tuple[tuple[float, float], ...] | None = None  # [bias, per input]: fixed or free log v
     se_off: bool = False  # f's SE part switched off (its hyperparameters fixed, signal variance at the floor)
+    g_off: bool = False  # g's GP switched off (likewise): g is its prior mean
 
     @property
     def f_slice(self) -> slice:
@@ -94,7 +95,11 @@ class Layout:
         if self.se_off:
             ls_hi, sf2_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0]
             fb[: self.f.d + 1] = [(ls_hi, ls_hi)] * self.f.d + [(sf2_lo, sf2_lo)]
-        return ([BOUNDS["log_lambda"]] * self.n + fb + self.g.bounds(**kb)
+        gb = self.g.bounds(**kb)
+        if self.g_off:  # lengthscales at the wide bound, signal (and bias) variance at the floor
+            ls_hi, sf2_lo, bias_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0], BOUNDS["log_bias_var"][0]
+            gb[: self.g.d + 1 + self.g.bias] = [(ls_hi, ls_hi)] * self.g.d + [(sf2_lo, sf2_lo)] + [(bias_lo, bias_lo)] * self.g.bias
+        return ([BOUNDS["log_lambda"]] * self.n + fb + gb
                 + [BOUNDS["mu0"]] + [BOUNDS["log_feature_coef"]] * self.p)
 
 

@@ -184,6 +184,9 @@ class VHGPR:
         spread over the training inputs. None (default): the raw inputs.
     g_input_names : sequence of str, optional
         A name per row of ``g_input_map``.
+    g_gp : bool
+        False: g's GP is switched off (lengthscales at the wide bound, signal variance at the
+        floor), so g is its prior mean; the dictionary model's test of whether it pays for itself.
     """
 
     def __init__(
@@ -206,6 +209,7 @@ class VHGPR:
         warm_start: FittedVHGPR | None = None,
         g_input_map: Any = None,
         g_input_names: tuple[str, ...] = (),
+        g_gp: bool = True,
     ) -> None:
         if int(n_restarts) != n_restarts or n_restarts < 1:
             raise ConfigError(f"VHGPR: n_restarts must be an integer >= 1, got {n_restarts!r}")
@@ -243,7 +247,7 @@ class VHGPR:
                 raise ConfigError(f"VHGPR: {len(g_input_names)} g_input_names for {g_input_map.shape[0]} rows of g_input_map")
         self.g_input_map = g_input_map
         self.g_input_names = tuple(str(nm) for nm in g_input_names) if g_input_map is not None else ()
-        self.se = se
+        self.se, self.g_gp = se, bool(g_gp)
         self.g_start = g_start
         self.warm_start = warm_start
         self.propagate = bool(propagate_noise_parameter_uncertainty)
@@ -255,14 +259,12 @@ class VHGPR:
         self.noise = _noise_model(noise_model, noise_features)
         self.n_restarts = int(n_restarts)
         self.max_iter = None if max_iter is None else int(max_iter)
-        self.random_state = random_state
-        self.tol = float(tol)
-        self.max_time = max_time
+        self.random_state, self.tol, self.max_time = random_state, float(tol), max_time
 
     def __repr__(self) -> str:
         nf = None if self.noise_features is None else list(self.noise_features.names)
         return (f"VHGPR(bias={self.bias}, linear={self.linear}, linear_prior_var={self.linear_prior_var}, se={self.se!r}, "
-                f"noise_features={nf}, n_restarts={self.n_restarts}, "
+                f"g_gp={self.g_gp}, noise_features={nf}, n_restarts={self.n_restarts}, "
                 f"max_iter={self.max_iter}, random_state={self.random_state}, tol={self.tol}, max_time={self.max_time})")
 
     def fit(self, X: Any, y: Any) -> FittedVHGPR:
@@ -432,7 +434,7 @@ class VHGPR:
         variants = {"on": (False,), "off": (True,), "auto": (True, False)}[self.se]
         fits = []
         for se_off in variants:
-            layout = Layout(n=n, f=f_spec, g=g_spec, p=p, linear_bounds=lin_bounds, se_off=se_off)
+            layout = Layout(n=n, f=f_spec, g=g_spec, p=p, linear_bounds=lin_bounds, se_off=se_off, g_off=not self.g_gp)
             best, runs = self._optimise(x_init, Xs, ys, layout, rng, deadline, max_iter, Phi)
             fits.append((layout, best, runs))
         selection = None
@@ -470,7 +472,7 @@ class VHGPR:
             "noise_parameters": noise_parameters,
             "time_s": time.perf_counter() - t0,
             "settings": {"bias": self.bias, "linear": self.linear, "linear_prior_var": self.linear_prior_var,
-                         "se": self.se, "propagate_noise_parameter_uncertainty": self.propagate,
+                         "se": self.se, "g_gp": self.g_gp, "propagate_noise_parameter_uncertainty": self.propagate,
                          "n_restarts": self.n_restarts, "g_start": self.g_start,
                          "max_iter": max_iter, "random_state": self.random_state, "tol": self.tol,
                          "max_time": self.max_time,

@@ -20,12 +20,15 @@ stored has none: ``v_alt = 0``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 import numpy as np
 
 from microctl.gp.shaped_features import GATED, ShapedFeatures
+from microctl.models.noise_dictionary import alternatives
 
-__all__ = ["Alternatives"]
+__all__ = ["Alternatives", "alternatives_record"]
 
 
 class Alternatives:
@@ -82,3 +85,14 @@ class Alternatives:
                        np.concatenate([s, np.asarray(u_b, dtype=float)])])
         v = self.values(X)
         return float(v[0] - v[1])
+
+
+def alternatives_record(model: Any, data: Any, afm: Any, cands: ShapedFeatures) -> dict:
+    """Every candidate added alone at its best size to ``model``'s noise, with its likelihood gain:
+    ``{name: [coefficient per unit of the candidate at scale 1, gain in nats]}`` (what ``microctl
+    train`` stores; ``model`` a FittedVHGPR, ``data`` its ResidualData, ``afm`` the stage's AFM)."""
+    Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
+    pred = model.predict(Xc if model.n_context else data.X)
+    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(Xc))
+    coef = coef / np.asarray(cands.scale, dtype=float)
+    return {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}

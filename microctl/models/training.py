@@ -23,11 +23,13 @@ from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.vhgpr import VHGPR, FittedVHGPR
 from microctl.models.afm import AnalyticForwardModel
+from microctl.models.alternatives import alternatives_record
 from microctl.models.declared_sources import declared_selection
 from microctl.models.direction import log_directions
 from microctl.models.eafm import bind_to_stage, context_names
+from microctl.models.g_gp_selection import select_g_gp
 from microctl.models.mean_shift import trend_features, with_mean_shift
-from microctl.models.noise_dictionary import alternatives, candidate_features, select_features
+from microctl.models.noise_dictionary import candidate_features, select_features
 from microctl.models.noise_inputs import G_INPUTS, G_STARTS, g_input_map, step_map
 from microctl.models.noise_summary import noise_summary
 from microctl.models.outlier_screen import SCREEN_ALPHA, bonferroni_bound, max_screened, screen_rows, screening_sources, sources_without_row, tail_bound
@@ -196,6 +198,11 @@ class ResidualModelSettings:
         Where the exact form's fit starts g (:class:`~microctl.gp.trainer.VHGPR`): ``"f"``
         (default: at the homoscedastic GP) or ``"residuals"`` (one more run, from a GP on the log
         squared residuals, :mod:`microctl.gp.noise_start`).
+    g_gp : str
+        g's GP on x beside its prior mean: ``"on"`` (default), ``"auto"`` (with the ``dictionary``
+        noise model kept only where the bound pays for its hyperparameters, opt-in until measured,
+        :mod:`microctl.models.g_gp_selection`; the other noise models and the sparse form keep it),
+        ``"off"`` (g is its prior mean).
     noise_sources : tuple of str or None
         With the ``dictionary`` noise model: None (default) lets the data select the noise
         sources; a list names them instead (candidates such as ``dq4:sat@4`` or quantities such as
@@ -215,6 +222,7 @@ class ResidualModelSettings:
     mean_shift: bool = setting(True)
     g_inputs: str = setting("raw", choices=tuple(G_INPUTS))
     g_start: str = setting("f", choices=G_STARTS)
+    g_gp: str = setting("on", choices=("auto", "on", "off"))
     noise_sources: tuple[str, ...] | None = setting(None, kind="names", none_ok=True)
 
     def __post_init__(self) -> None:
@@ -312,7 +320,7 @@ def _fit(data: ResidualData, afm: AnalyticForwardModel, st: ResidualModelSetting
                     n_restarts=st.restarts,
                     propagate_noise_parameter_uncertainty=st.noise_parameter_uncertainty,
                     max_iter=st.max_iter, random_state=st.seed, max_time=max_time,
-                    g_start="both" if sparse else st.g_start, warm_start=warm_start)
+                    g_start="both" if sparse else st.g_start, warm_start=warm_start, g_gp=st.g_gp != "off")
     if sparse:
         from microctl.gp.sparse import SparseVHGPR
 
@@ -386,28 +394,21 @@ def _fit_dictionary(data: ResidualData, afm: AnalyticForwardModel, st: ResidualM
                                                                                   gates))
         model = _fit_selected(data, afm, st, rows, offs, names, shapes, params, gates, max_time,
                               warm_start=model if sparse else None)
+    st, mf = _with_chosen_se(st, model), None  # the later fits start from this one's: f's SE part as it chose
     if st.mean_shift:  # the mean shift the selected sources' scatter causes (mean_shift)
         feats = trend_features(names, rows, offs, shapes, params, data.X.shape[1])
         model, shift = with_mean_shift(model, feats, lambda mf, warm: _fit_selected(
-            data, afm, _with_chosen_se(st, model), rows, offs, names, shapes, params, gates, max_time, warm, mf))
+            data, afm, st, rows, offs, names, shapes, params, gates, max_time, warm, mf))
         if shift is not None:
-            record["mean_shift"] = shift
+            record["mean_shift"], mf = shift, feats
+    if st.g_gp == "auto" and not sparse:  # g's GP must pay for its hyperparameters (g_gp_selection)
+        model, record["g_gp"] = select_g_gp(model, lambda: _fit_selected(
+            data, afm, replace(st, g_gp="off"), rows, offs, names, shapes, params, gates, max_time, model, mf), len(data.y))
     # the controller's least-motion rule (microctl.control.credible) weighs the alternatives by their
     # evidence (none where the user named the sources: those are the stage's, no other is weighed)
     if st.noise_sources is None:
-        record["alternatives"] = _alternatives_record(model, data, afm, cands)
-    record["n"] = int(len(data.y))
-    return replace(model, info={**model.info, "noise_selection": record})
-
-
-def _alternatives_record(model: FittedVHGPR, data: ResidualData, afm: AnalyticForwardModel, cands: Any) -> dict:
-    """Every candidate added alone at its best size to ``model``'s noise, with its likelihood gain:
-    ``{name: [coefficient per unit of the candidate at scale 1, gain in nats]}``."""
-    Xc = data.context_inputs(afm.n_q)  # x = [s; u] and the move's context
-    pred = model.predict(Xc if model.n_context else data.X)
-    coef, gain = alternatives(data.y - pred.f_mean, np.exp(pred.g_mean), cands.values(Xc))
-    coef = coef / np.asarray(cands.scale, dtype=float)
-    return {nm: [float(c), float(g)] for nm, c, g in zip(cands.names, coef, gain)}
+        record["alternatives"] = alternatives_record(model, data, afm, cands)
+    return replace(model, info={**model.info, "noise_selection": {**record, "n": int(len(data.y))}})
 
 
 def _positions(data: ResidualData, afm: AnalyticForwardModel) -> np.ndarray:

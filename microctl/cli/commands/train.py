@@ -61,6 +61,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--g-start", choices=G_STARTS, default=d.g_start,
                    help=f"where the noise GP's fit starts (default {d.g_start}: the homoscedastic GP; residuals: "
                    "one more run from the log squared residuals, docs/vhgpr.md)")
+    p.add_argument("--g-gp", choices=("auto", "on", "off"), default=d.g_gp,
+                   help=f"the noise GP beside the noise sources (default {d.g_gp}; auto: with the dictionary noise model "
+                   "kept only where the data pay for it; off: the noise is the sources alone, docs/vhgpr.md)")
     p.add_argument("--noise-source", dest="noise_sources", action="append", metavar="NAME",
                    help="name a noise source instead of letting the data select them (repeat for each; a candidate "
                    "such as dq4:sat@4 or a quantity such as dq4 or drx, docs/controller.md; 'none': no source)")
@@ -92,7 +95,8 @@ def _run(args: argparse.Namespace) -> int:
         settings = ResidualModelSettings(noise_model=args.noise_model, linear_trend=args.linear_trend, se=args.se,
                                          restarts=args.restarts, seed=args.seed, gp=args.gp,
                                          inducing=args.inducing, mean_shift=args.mean_shift, g_inputs=args.g_inputs,
-                                         g_start=args.g_start, noise_sources=_named_sources(args.noise_sources))
+                                         g_start=args.g_start, g_gp=args.g_gp,
+                                         noise_sources=_named_sources(args.noise_sources))
     except SettingError as exc:  # name the option, not the field
         raise ConfigError(f"--{exc.field.replace('_', '-')}: {exc.reason}") from None
     check_output_file(args.out, "-o", {"the measurement log LOG.csv": args.log, "the stage config --config": args.config})
@@ -125,6 +129,10 @@ def _run(args: argparse.Namespace) -> int:
     print(f"train: {len(data.y)} rows{form}, bound {model.bound:.4g}, {time.perf_counter() - t0:.1f} s; "
           f"model for stage '{config.stage.name}' written to {args.out}")
     print(f"train: {describe_noise(noise_summary(model, afm))}")
+    ggp = model.info.get("noise_selection", {}).get("g_gp")
+    if ggp is not None:  # microctl.models.g_gp_selection
+        print(f"train: noise GP beside the sources {'kept' if ggp['kept_gp'] else 'dropped'}: it raised the bound by "
+              f"{ggp['bound_with_gp'] - ggp['bound_without_gp']:.1f} nats, needed {ggp['penalty']:.1f}")
     screened = describe_screen(model.info.get("noise_selection", {}).get("screened"), log.seq)
     if screened:
         print(f"train: {screened}")
@@ -149,8 +157,9 @@ def describe_noise(summary: dict) -> str:
         return (f"noise model dictionary: floor std {summary['floor_std_um']:.4f} µm; sources named "
                 f"({', '.join(named) or 'none'}), not selected by the data: {src}")
     if summary["noise_model"] == "dictionary" and not summary["sources"]:
+        rest = "" if (sel.get("g_gp") or {}).get("kept_gp") is False else "; g's GP models the rest"
         return (f"noise model dictionary: no noise source selected among {sel['candidates']} candidates "
-                f"(floor std {summary['floor_std_um']:.4f} µm everywhere; g's GP models the rest)")
+                f"(floor std {summary['floor_std_um']:.4f} µm everywhere{rest})")
     if summary["noise_model"] == "dictionary":
         src = ", ".join(summary["sources"])
         swaps = "; ".join(f"{a} -> {b}" for a, b in sel.get("shape_swaps", []))
