@@ -382,16 +382,11 @@ class Kernel:
         value, se, se_w = self.cross_value_parts(Xs, terms)
         return value, self.cross_gradient(Xs, terms, se, se_w)
 
-    def cross_value(self, Xs: np.ndarray, terms: CrossTerms) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`cross_grad`'s value alone, and the SE part ``k_se(Xs, X)`` (m, n) that
-        :meth:`cross_gradient` reads (so a caller that needs the gradient only sometimes, a
-        Newton step's convergence check, pays for the (m, n) kernel once)."""
-        value, K, _ = self.cross_value_parts(Xs, terms)
-        return value, K
-
     def cross_value_parts(self, Xs: np.ndarray, terms: CrossTerms) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`cross_value` and the product ``k_se(Xs, X) @ weights`` (m,) that its value adds to,
-        which :meth:`cross_gradient` reads too (``se_weights=``: not computed a second time)."""
+        """:meth:`cross_grad`'s value alone, the SE part ``k_se(Xs, X)`` (m, n) and the product
+        ``k_se(Xs, X) @ weights`` (m,) its value adds to: what :meth:`cross_gradient` reads (so a
+        caller that needs the gradient only sometimes, a Newton step's convergence check, pays for
+        the (m, n) kernel once)."""
         Xs = self._cols(Xs)
         K = _se_scaled(Xs * terms.inv_ls, terms.Z, terms.z2, self.log_signal_var)  # the SE part, training side precomputed
         Kw = K @ terms.weights
@@ -402,16 +397,14 @@ class Kernel:
             value = value + self.trend.values(Xs) @ terms.trend
         return value, K, Kw
 
-    def cross_gradient(self, Xs: np.ndarray, terms: CrossTerms, se: np.ndarray,
-                       se_weights: np.ndarray | None = None) -> np.ndarray:
-        """:meth:`cross_grad`'s gradient, shape (m, d'), from ``se`` = :meth:`cross_value`'s SE part
-        (and ``se_weights`` = ``se @ weights`` when the caller has it: :meth:`cross_value_parts`)."""
+    def cross_gradient(self, Xs: np.ndarray, terms: CrossTerms, se: np.ndarray, se_weights: np.ndarray) -> np.ndarray:
+        """:meth:`cross_grad`'s gradient, shape (m, d'), from :meth:`cross_value_parts`'s SE part
+        ``se`` and its ``se_weights`` = ``se @ weights``."""
         width = np.asarray(Xs).shape[1]
         Xs = self._cols(Xs)
         inv_ls = terms.inv_ls
-        se_w = se @ terms.weights if se_weights is None else se_weights
         # d k_se(x, X_i)/dx = -k_se (x - X_i) / l^2: sum_i w_i k_i (X_i - x) = K (w X) - (K w) x
-        grad = (se @ terms.WX - se_w[:, None] * Xs) * (inv_ls * inv_ls)
+        grad = (se @ terms.WX - se_weights[:, None] * Xs) * (inv_ls * inv_ls)
         if terms.linear is not None:
             grad = grad + terms.linear[None, :]
         if terms.trend is not None:  # the chain rule through phi
