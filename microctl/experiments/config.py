@@ -81,7 +81,7 @@ class Training:
         One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
-    noise_model, linear_trend, mean_shift, g_inputs, g_start, restarts, max_iter, noise_sources
+    noise_model, linear_trend, se, mean_shift, g_inputs, g_start, g_gp, restarts, max_iter, noise_sources
         The residual model (:class:`~microctl.models.training.ResidualModelSettings`; same defaults).
     refine_rounds : int
         Refinement rounds after the first fit (0: none): each runs incremental episodes,
@@ -106,9 +106,11 @@ class Training:
     episode_moves: int = setting(4, lo=1, hi=1000)
     noise_model: str = same_setting(ResidualModelSettings, "noise_model")
     linear_trend: bool = same_setting(ResidualModelSettings, "linear_trend")
+    se: str = same_setting(ResidualModelSettings, "se")
     mean_shift: bool = same_setting(ResidualModelSettings, "mean_shift")
     g_inputs: str = same_setting(ResidualModelSettings, "g_inputs")
     g_start: str = same_setting(ResidualModelSettings, "g_start")
+    g_gp: str = same_setting(ResidualModelSettings, "g_gp")
     restarts: int = same_setting(ResidualModelSettings, "restarts")
     max_iter: int | None = same_setting(ResidualModelSettings, "max_iter")
     noise_sources: tuple[str, ...] | None = same_setting(ResidualModelSettings, "noise_sources")
@@ -124,9 +126,9 @@ class Training:
 
     def model_settings(self, seed: int) -> ResidualModelSettings:
         """The residual model these settings describe, with the fit's seed."""
-        return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend,
+        return ResidualModelSettings(noise_model=self.noise_model, linear_trend=self.linear_trend, se=self.se,
                                      mean_shift=self.mean_shift, g_inputs=self.g_inputs, g_start=self.g_start,
-                                     restarts=self.restarts,
+                                     g_gp=self.g_gp, restarts=self.restarts,
                                      max_iter=self.max_iter, seed=seed, noise_sources=self.noise_sources)
 
 

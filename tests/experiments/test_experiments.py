@@ -181,6 +181,8 @@ def test_common_random_numbers(quick_run):
     ({"training": {"moves": 20, "linear_trend": False, "se": "off"}}, "training"),
     ({"training": {"moves": 20, "refine_target_range_um": [0, 500]}}, "training.refine_target_range_um"),
     ({"training": {"moves": 20, "gp_mean": "linear"}}, "training.gp_mean"),
+    ({"training": {"moves": 20, "g_gp": "maybe"}}, "training.g_gp"),
+    ({"training": {"moves": 20, "se": "sometimes"}}, "training.se"),
     ({"absolute": {"trials": 0}}, "absolute.trials"),
     ({"stage": "nope.yaml"}, "stage"),
 ])
@@ -196,6 +198,19 @@ def test_bad_field_fails_before_any_move(tmp_path, capsys, monkeypatch, patch, n
     lines = err.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0] and str(exp) in lines[0]
     assert moves == [] and not out.exists()
+
+
+def test_training_se_and_g_gp_reach_the_residual_model(tmp_path):
+    """The experiment file's ``se`` and ``g_gp`` are the residual model's settings of the same name;
+    unset, they are ResidualModelSettings' defaults (one source of the defaults)."""
+    from microctl.models.training import ResidualModelSettings
+
+    cfg = load_experiment_config(_write(tmp_path, {**TINY, "training": {"moves": 20, "se": "on", "g_gp": "off"}}))
+    st = cfg.training.model_settings(5)
+    assert (st.se, st.g_gp, st.seed) == ("on", "off", 5)
+    plain = load_experiment_config(_write(tmp_path, {**TINY, "training": {"moves": 20}}, "plain.yaml"))
+    d = ResidualModelSettings()
+    assert (plain.training.model_settings(0).se, plain.training.model_settings(0).g_gp) == (d.se, d.g_gp)
 
 
 def test_oracle_needs_a_simulated_stage(tmp_path, capsys):
