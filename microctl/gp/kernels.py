@@ -305,14 +305,17 @@ class Kernel:
 
     def diag(self, X: np.ndarray) -> np.ndarray:
         """k(x, x) at the rows of X, shape (m,)."""
-        X = self._cols(X)
-        out = np.full(X.shape[0], self.signal_var + self.bias_var)
+        Xc = self._cols(X)
+        return self._diag_of(Xc, None if self.trend is None else self.trend.values(Xc))
+
+    def _diag_of(self, Xc: np.ndarray, trend: np.ndarray | None) -> np.ndarray:
+        """k(x, x) from the kernel's inputs Xc (m, d) and the trend's features of Xc (m, t) or None."""
+        out = np.full(Xc.shape[0], self.signal_var + self.bias_var)
         v = self.linear_vars
         if v is not None:
-            out += (X * X) @ v
-        if self.trend is not None:
-            P = self.trend.values(X)
-            out += self.trend.var * np.einsum("ij,ij->i", P, P)
+            out += (Xc * Xc) @ v
+        if trend is not None:
+            out += self.trend.var * np.einsum("ij,ij->i", trend, trend)
         return out
 
     def grad_traces(self, G: np.ndarray, se: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -445,14 +448,20 @@ class Kernel:
     def features(self, X: np.ndarray) -> np.ndarray:
         """psi of the feature form at the rows of X, shape (m, p) (p = ``feature_weights.size``)."""
         Z, z2 = self._z2(X)
-        cols = [np.exp(-0.5 * z2)[:, None]]
-        if self.log_bias_var is not None:
-            cols.append(np.ones((Z.shape[0], 1)))
-        if self.log_linear_vars is not None:
-            cols.append(self._cols(X))
-        if self.trend is not None:
-            cols.append(self.trend.values(X))
-        return np.hstack(cols)
+        return self._psi_of(np.exp(-0.5 * z2), self._cols(X), None if self.trend is None else self.trend.values(X))
+
+    def _psi_of(self, az: np.ndarray, Xc: np.ndarray, trend: np.ndarray | None) -> np.ndarray:
+        """psi's columns [exp(-|z|^2 / 2), 1, x, phi(x)] (those the kernel has) written into one
+        array (m, p), from az (m,), the kernel's inputs Xc (m, d) and the trend's features (m, t) or None."""
+        blocks = [az[:, None]] + ([1.0] if self.log_bias_var is not None else []) + (
+            [Xc] if self.log_linear_vars is not None else []) + ([trend] if trend is not None else [])
+        widths = [1 if np.ndim(b) < 2 else b.shape[1] for b in blocks]
+        psi = np.empty((az.shape[0], sum(widths)))
+        col = 0
+        for b, w in zip(blocks, widths):
+            psi[:, col:col + w] = b
+            col += w
+        return psi
 
     def se_remainder(self, Xa: np.ndarray, Xb: np.ndarray,
                      side_b: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -477,24 +486,9 @@ class Kernel:
         Xc = self._cols(X)
         az = np.exp(-0.5 * z2)
         trend = None if self.trend is None else self.trend.values(X)  # X's first k columns, as Xc's
-        # psi's columns written into one array (the values np.hstack of features() gives)
-        blocks = [az[:, None]] + ([1.0] if self.log_bias_var is not None else []) + (
-            [Xc] if self.log_linear_vars is not None else []) + ([trend] if trend is not None else [])
-        widths = [1 if np.ndim(b) < 2 else b.shape[1] for b in blocks]
-        psi = np.empty((Z.shape[0], sum(widths)))
-        col = 0
-        for b, w in zip(blocks, widths):
-            psi[:, col:col + w] = b
-            col += w
         Zb, ab = side_b
         E = self.signal_var * az[:, None] * ab[None, :] * np.expm1(Z @ Zb.T)
-        diag = np.full(Xc.shape[0], self.signal_var + self.bias_var)
-        v = self.linear_vars
-        if v is not None:
-            diag += (Xc * Xc) @ v
-        if trend is not None:
-            diag += self.trend.var * np.einsum("ij,ij->i", trend, trend)
-        return psi, E, diag
+        return self._psi_of(az, Xc, trend), E, self._diag_of(Xc, trend)
 
     def se_remainder_side(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What :meth:`se_remainder` reads of one side X (n, d): Z = X / l (n, d) and exp(-|z|^2 / 2) (n,)."""
