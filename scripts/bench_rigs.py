@@ -39,6 +39,8 @@ Methods (columns):
   objective (``weigh_alternatives``);
 - ``noise_only``: today's model with the previous objective (no f variance);
 - ``params``: the default with the noise parameters' uncertainty in the objective;
+- ``g_on``: the default with g's GP always kept beside the selected sources (``g_gp: on``; the
+  default keeps it only where the bound pays for it, microctl.models.g_gp_selection);
 - ``still``: the default trained on ``covering_still`` (every 20th move the previous command
   again, which reads the noise floor; microctl.measurement.design);
 - ``refined``: the default, trained on as many moves of which 40 % are refinement moves (rounds of
@@ -187,6 +189,9 @@ METHODS = {
     # the default with the noise parameters' uncertainty propagated into the objective
     "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
                      ControllerSettings()),
+    # the default with g's GP always kept beside the selected sources (g_gp: on, the default until
+    # g_gp: auto was measured; microctl.models.g_gp_selection)
+    "g_on": Method("g_on", "covering", ResidualModelSettings(g_gp="on"), ControllerSettings()),
     # the default with g's GP on the actuators' positions and steps (microctl.models.noise_inputs)
     "g_actuators": Method("g_actuators", "covering", ResidualModelSettings(g_inputs="actuators"),
                           ControllerSettings()),

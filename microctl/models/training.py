@@ -199,10 +199,10 @@ class ResidualModelSettings:
         (default: at the homoscedastic GP) or ``"residuals"`` (one more run, from a GP on the log
         squared residuals, :mod:`microctl.gp.noise_start`).
     g_gp : str
-        g's GP on x beside its prior mean: ``"on"`` (default), ``"auto"`` (with the ``dictionary``
-        noise model kept only where the bound pays for its hyperparameters, opt-in until measured,
-        :mod:`microctl.models.g_gp_selection`; the other noise models and the sparse form keep it),
-        ``"off"`` (g is its prior mean).
+        g's GP on x beside its prior mean: ``"auto"`` (default: with the ``dictionary`` noise model
+        kept only where the bound pays for its hyperparameters, :mod:`microctl.models.g_gp_selection`;
+        the other noise models and the sparse form keep it), ``"on"`` (always kept) or ``"off"``
+        (g is its prior mean).
     noise_sources : tuple of str or None
         With the ``dictionary`` noise model: None (default) lets the data select the noise
         sources; a list names them instead (candidates such as ``dq4:sat@4`` or quantities such as
@@ -222,7 +222,7 @@ class ResidualModelSettings:
     mean_shift: bool = setting(True)
     g_inputs: str = setting("raw", choices=tuple(G_INPUTS))
     g_start: str = setting("f", choices=G_STARTS)
-    g_gp: str = setting("on", choices=("auto", "on", "off"))
+    g_gp: str = setting("auto", choices=("auto", "on", "off"))
     noise_sources: tuple[str, ...] | None = setting(None, kind="names", none_ok=True)
 
     def __post_init__(self) -> None:

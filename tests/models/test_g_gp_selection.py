@@ -97,10 +97,13 @@ def test_a_scatter_the_sources_describe_drops_gs_gp(tmp_path, table1):
     assert model.bound == rec["bound_without_gp"]  # the model returned is the refit without the GP
     # the GP switched off: g's signal variance at its floor, so g is its prior mean
     assert model.g_log_signal_var == pytest.approx(BOUNDS["log_signal_var"][0])
-    # the default (on) is the fit with the GP, unchanged: no test, the bound the test compared
+    # on is the fit with the GP, unchanged: no test, the bound the test compared
+    _, kept = _train(log, cfg, afm, g_gp="on")
+    assert "g_gp" not in kept.info["noise_selection"]
+    assert kept.bound == rec["bound_with_gp"]
+    # auto is the default: the same decision and model without naming it
     _, default = _train(log, cfg, afm)
-    assert "g_gp" not in default.info["noise_selection"]
-    assert default.bound == rec["bound_with_gp"]
+    assert default.info["noise_selection"]["g_gp"] == rec and default.bound == model.bound
 
 
 @pytest.mark.slow
