@@ -166,6 +166,12 @@ class ShapedFeatures:
                 ("_groups", [(kind, [j for j, k in enumerate(self.shapes) if k == kind])
                              for kind in sorted(set(self.shapes))])):
             object.__setattr__(self, name, value)
+        # what values() reads of each group, indexed once: the columns as an index array and the
+        # group's parameters (2, k); a single group of every feature in order reads Z whole
+        plan = tuple((kind, np.array(idx), self._params[idx].T) for kind, idx in self._groups)
+        whole = len(plan) == 1 and self._groups[0][1] == list(range(p))
+        object.__setattr__(self, "_plan", plan)
+        object.__setattr__(self, "_whole", (plan[0][0], plan[0][2]) if whole else None)
 
     def gates(self, X: np.ndarray) -> np.ndarray | None:
         """c = X g^T at the rows of X, shape (m, p); None without gates."""
@@ -184,9 +190,12 @@ class ShapedFeatures:
         """phi(x) at the rows of X (original units), shape (m, p)."""
         Z = self.linear(X)
         C = self.gates(X)
+        if self._whole is not None:  # Z itself: the array Z[:, [0, ..., p-1]] copies (C-ordered alike)
+            kind, params = self._whole
+            return _shape_np(kind, Z, params, C) / self._scale
         out = np.empty_like(Z)
-        for kind, idx in self._groups:  # one call per shape, its columns at once (params broadcast)
-            out[:, idx] = _shape_np(kind, Z[:, idx], self._params[idx].T, None if C is None else C[:, idx])
+        for kind, idx, params in self._plan:  # one call per shape, its columns at once (params broadcast)
+            out[:, idx] = _shape_np(kind, Z[:, idx], params, None if C is None else C[:, idx])
         return out / self._scale
 
     def _linear_ca(self, x: ca.MX) -> tuple[ca.MX, ca.MX | None]:
