@@ -52,6 +52,13 @@ F_LOG_LENGTHSCALE_MAX = 1.5
 # --------------------------------------------------------------------------- parameter layout
 
 
+def _switched_off(d: int, bias: bool = False) -> list[tuple[float, float]]:
+    """Bounds that switch a kernel's SE part off (f's ``se_off``, g's ``g_off``): its d lengthscales
+    pinned at the wide bound, its signal variance (and its bias variance, if it has one) at the floor."""
+    ls_hi, sf2_lo, bias_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0], BOUNDS["log_bias_var"][0]
+    return [(ls_hi, ls_hi)] * d + [(sf2_lo, sf2_lo)] + [(bias_lo, bias_lo)] * bias
+
+
 @dataclass(frozen=True)
 class Layout:
     """Where each block of parameters sits in the flat optimisation vector.
@@ -93,12 +100,10 @@ class Layout:
         # f's lengthscales capped at F_LOG_LENGTHSCALE_MAX (see there); g keeps BOUNDS'.
         fb = self.f.bounds(**{**kb, "ls": (kb["ls"][0], F_LOG_LENGTHSCALE_MAX)}, affine=self.linear_bounds)
         if self.se_off:
-            ls_hi, sf2_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0]
-            fb[: self.f.d + 1] = [(ls_hi, ls_hi)] * self.f.d + [(sf2_lo, sf2_lo)]
+            fb[: self.f.d + 1] = _switched_off(self.f.d)
         gb = self.g.bounds(**kb)
-        if self.g_off:  # lengthscales at the wide bound, signal (and bias) variance at the floor
-            ls_hi, sf2_lo, bias_lo = BOUNDS["log_lengthscale"][1], BOUNDS["log_signal_var"][0], BOUNDS["log_bias_var"][0]
-            gb[: self.g.d + 1 + self.g.bias] = [(ls_hi, ls_hi)] * self.g.d + [(sf2_lo, sf2_lo)] + [(bias_lo, bias_lo)] * self.g.bias
+        if self.g_off:
+            gb[: self.g.d + 1 + self.g.bias] = _switched_off(self.g.d, bool(self.g.bias))
         return ([BOUNDS["log_lambda"]] * self.n + fb + gb
                 + [BOUNDS["mu0"]] + [BOUNDS["log_feature_coef"]] * self.p)
 
