@@ -28,6 +28,7 @@ from microctl.gp.noise_prior import NoiseFeatures
 from microctl.gp.noise_start import log_residual_start
 from microctl.gp.shaped_features import ShapedFeatures
 from microctl.gp.trend import FeatureTrend
+from microctl.util.bic import bic_penalty
 from microctl.util.blas import single_thread_blas
 
 __all__ = ["VHGPR", "default_max_iter", "G_STARTS"]
@@ -439,7 +440,7 @@ class VHGPR:
             fits.append((layout, best, runs))
         selection = None
         if len(fits) == 2:  # "auto": the SE part must pay for its d + 1 hyperparameters (BIC)
-            penalty = 0.5 * (d + 1) * math.log(n)
+            penalty = bic_penalty(d + 1, n)
             gain = fits[1][1][0] - fits[0][1][0]
             selection = {"bound_affine": fits[0][1][0], "bound_with_se": fits[1][1][0], "penalty": penalty,
                          "kept_se": bool(gain > penalty)}
@@ -516,8 +517,7 @@ class VHGPR:
             run["se"] = not layout.se_off
             x_run = run.pop("x", None)
             runs.append(run)
-            # the run from the residuals pays for g's kernel (kg + 1 hyperparameters) to win
-            handicap = RESIDUAL_RUN_HANDICAP * (layout.g.d + 1) / 2 * math.log(n) if k == "g_resid" else 0.0
+            handicap = RESIDUAL_RUN_HANDICAP * bic_penalty(layout.g.d + 1, n) if k == "g_resid" else 0.0
             if run["status"] == "ok" and (best is None or run["bound"] - handicap > best[0]):
                 best = (run["bound"], x_run)
         if best is None:

@@ -27,6 +27,7 @@ import numpy as np
 
 from microctl.gp.shaped_features import GATED, ShapedFeatures
 from microctl.models.noise_dictionary import alternatives
+from microctl.util.bic import bic_penalty
 
 __all__ = ["Alternatives", "alternatives_record"]
 
@@ -55,7 +56,7 @@ class Alternatives:
         self.coef = np.array([float(alts[candidates.names[j]][0]) for j in idx])
         gain = np.array([float(alts[candidates.names[j]][1]) for j in idx])
         n = max(int(record.get("n", 1)), 1)
-        w = np.exp(gain - 0.5 * np.log(n))  # BIC: one parameter more than the selected model
+        w = np.exp(gain - bic_penalty(1, n))  # BIC: one parameter more than the selected model
         #: Normalised weights w_j / (1 + sum w), shape (p,).
         self.weights = w / (1.0 + float(np.sum(w)))
 

@@ -18,10 +18,10 @@ not. Both bounds and the decision are in the model's ``info["noise_selection"]["
 
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 from microctl.gp.fitted import FittedVHGPR
+from microctl.util.bic import bic_penalty
 
 __all__ = ["g_gp_penalty", "select_g_gp"]
 
@@ -30,7 +30,7 @@ def g_gp_penalty(model: FittedVHGPR, n: int) -> float:
     """The BIC's price of g's GP on n rows: half log n per hyperparameter (lengthscales, signal
     variance, and the bias variance when g's kernel has one)."""
     k = len(model.g_log_lengthscales) + 1 + (model.g_log_bias_var is not None)
-    return 0.5 * k * math.log(n)
+    return bic_penalty(k, n)
 
 
 def select_g_gp(model: FittedVHGPR, without_gp: Callable[[], FittedVHGPR], n: int) -> tuple[FittedVHGPR, dict]:

@@ -74,7 +74,6 @@ conservative Bonferroni correction (its direction is not identified under the nu
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +83,7 @@ from microctl.models.afm import AnalyticForwardModel
 from microctl.models.noise_inputs import step_map
 from microctl.stage.causes import Effects
 from microctl.stage.physics import ball_heights, contact_model
+from microctl.util.bic import bic_penalty
 from microctl.util.blas import single_thread_blas
 
 __all__ = ["candidate_features", "context_width", "ball_load_map", "select_features", "Selection", "alternatives", "quantity",
@@ -465,7 +465,7 @@ def select_features(residual: np.ndarray, candidates: np.ndarray, names, *, tilt
         for j in order:
             lj, cj = fit_variance_with(r2, Phi[:, chosen + [int(j)]], tilt_inputs, tilt)
             g = lj - ll
-            options.append((p_rest[int(j)] if g > 0 else 1.0, g, 0.5 * math.log(n), int(j), cj, tilt))
+            options.append((p_rest[int(j)] if g > 0 else 1.0, g, bic_penalty(1, n), int(j), cj, tilt))
         if tilt_inputs is not None and tilt is None:
             options.append(_tilt_option(r2, ll, Phi[:, chosen], tilt_inputs, m))
         passing = [o for o in options if o[0] < alpha and o[1] >= o[2]]
@@ -550,7 +550,7 @@ def _tilt_option(r2: np.ndarray, ll: float, Phi: np.ndarray, Z: np.ndarray, m: i
     lt, ct, w = _fit_tilt(r2, Phi, Z)
     g = lt - ll
     from scipy import stats  # here, not at import: `microctl solve` reads the candidates without scipy
-    return (float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g, 0.5 * (k + 1) * math.log(n), "tilt", ct, w)
+    return (float(stats.chi2.sf(2 * g, k + 1)) * m if g > 0 else 1.0, g, bic_penalty(k + 1, n), "tilt", ct, w)
 
 #: the tilt's slope bound per standardised pose coordinate: its variance grows at most e^4-fold
 #: per standard deviation of the training poses (a lightly loaded ball's scatter, planted at 2 in
