@@ -65,22 +65,25 @@ def se_matrix(Xa: np.ndarray, Xb: np.ndarray, log_lengthscales: np.ndarray, log_
     """
     inv_ls = np.exp(-np.asarray(log_lengthscales, dtype=float))
     Zb = np.asarray(Xb, dtype=float) * inv_ls
-    return _se_scaled(np.asarray(Xa, dtype=float) * inv_ls, Zb, np.einsum("ij,ij->i", Zb, Zb),
+    return _se_scaled(np.asarray(Xa, dtype=float) * inv_ls, Zb, -0.5 * np.einsum("ij,ij->i", Zb, Zb),
                       log_signal_var, flush)
 
 
-def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: float,
+def _se_scaled(Za: np.ndarray, Zb: np.ndarray, half_zb2: np.ndarray, log_signal_var: float,
                flush: float | None = None) -> np.ndarray:
     """:func:`se_matrix` from the scaled inputs Za (m, d), Zb (n, d) and Zb's squared row norms
-    zb2 (n,), which a caller evaluating against fixed training inputs computes once."""
-    sq = np.einsum("ij,ij->i", Za, Za)[:, None] + zb2[None, :]
-    cross = Za @ Zb.T
-    cross *= 2.0  # in place: the values of 2.0 * (Za @ Zb.T), one (m, n) array fewer
-    sq -= cross
-    # clipped at 0 by a masked store, several times faster than np.maximum on a large array; the
-    # same kernel to the last bit (a -0.0, which maximum makes +0.0, goes through exp to 1 alike)
-    sq[sq < 0.0] = 0.0
-    sq *= -0.5
+    times -1/2, ``half_zb2`` (n,), which a caller evaluating against fixed training inputs
+    computes once."""
+    # -|za - zb|^2 / 2 as -(|za|^2 + |zb|^2) / 2 + za.zb: the factor -1/2 applied to the two norm
+    # vectors, not twice to the (m, n) array (as 2 za.zb, then -1/2 times the difference). A
+    # power of two scales exactly (outside the subnormal range), so the same numbers to the last
+    # bit with two passes over the (m, n) array fewer
+    sq = (-0.5 * np.einsum("ij,ij->i", Za, Za))[:, None] + half_zb2[None, :]
+    sq += Za @ Zb.T
+    # clipped at 0 (a squared distance below 0 is round-off) by a masked store, several times
+    # faster than np.minimum on a large array; the same kernel to the last bit (a -0.0 or a +0.0
+    # goes through exp to 1 alike)
+    sq[sq > 0.0] = 0.0
     far = None
     if flush is not None:
         far = sq < -flush
@@ -96,15 +99,15 @@ def _se_scaled(Za: np.ndarray, Zb: np.ndarray, zb2: np.ndarray, log_signal_var: 
 class CrossTerms:
     """The training side of :meth:`Kernel.cross_grad`: inputs X (n, d), weights (n,) and their
     product ``weights[:, None] * X`` (n, d), the scaled inputs Z = X / l (n, d) and their squared
-    norms (n,), and the bias, linear (d,) and trend (t,) parts' sums over the weights (None where
-    the kernel has no such part)."""
+    norms times -1/2 (n,), and the bias, linear (d,) and trend (t,) parts' sums over the weights
+    (None where the kernel has no such part)."""
 
     X: np.ndarray
     weights: np.ndarray
     WX: np.ndarray
     inv_ls: np.ndarray
     Z: np.ndarray
-    z2: np.ndarray
+    half_z2: np.ndarray
     bias: float
     linear: np.ndarray | None
     trend: np.ndarray | None
@@ -113,12 +116,13 @@ class CrossTerms:
 @dataclass(frozen=True)
 class RowsSide:
     """What :meth:`Kernel.matrix` reads of its second argument Xb: the kernel's inputs X (n, d),
-    the scaled inputs Z = X / l (n, d), their squared norms (n,) and the trend's features of Xb
-    (n, t; None without a trend). A posterior's training inputs do not change: computed once."""
+    the scaled inputs Z = X / l (n, d), their squared norms times -1/2 (n,) and the trend's
+    features of Xb (n, t; None without a trend). A posterior's training inputs do not change:
+    computed once."""
 
     X: np.ndarray
     Z: np.ndarray
-    z2: np.ndarray
+    half_z2: np.ndarray
     trend: np.ndarray | None
 
 
@@ -288,7 +292,7 @@ class Kernel:
             K = self.se(Xa, Xb)
         else:
             inv_ls = np.exp(-np.asarray(self.log_lengthscales, dtype=float))
-            K = _se_scaled(self._cols(Xa) * inv_ls, side.Z, side.z2, self.log_signal_var)
+            K = _se_scaled(self._cols(Xa) * inv_ls, side.Z, side.half_z2, self.log_signal_var)
         if self.log_bias_var is not None:
             K += self.bias_var
         v = self.linear_vars
@@ -301,7 +305,7 @@ class Kernel:
     def rows_side(self, Xb: np.ndarray) -> RowsSide:
         """What :meth:`matrix` reads of its second argument Xb (n, d'), for ``side=``."""
         Z, z2 = self._z2(Xb)
-        return RowsSide(X=self._cols(Xb), Z=Z, z2=z2, trend=None if self.trend is None else self.trend.values(Xb))
+        return RowsSide(X=self._cols(Xb), Z=Z, half_z2=-0.5 * z2, trend=None if self.trend is None else self.trend.values(Xb))
 
     def diag(self, X: np.ndarray) -> np.ndarray:
         """k(x, x) at the rows of X, shape (m,)."""
@@ -359,7 +363,7 @@ class Kernel:
         weights = np.asarray(weights, dtype=float)
         v = self.linear_vars
         return CrossTerms(
-            X=X, weights=weights, WX=weights[:, None] * X, Z=Z, z2=z2,
+            X=X, weights=weights, WX=weights[:, None] * X, Z=Z, half_z2=-0.5 * z2,
             inv_ls=np.exp(-np.asarray(self.log_lengthscales, dtype=float)),
             bias=self.bias_var * float(np.sum(weights)),
             linear=None if v is None else (X * v).T @ weights,
@@ -391,7 +395,7 @@ class Kernel:
         caller that needs the gradient only sometimes, a Newton step's convergence check, pays for
         the (m, n) kernel once)."""
         Xs = self._cols(Xs)
-        K = _se_scaled(Xs * terms.inv_ls, terms.Z, terms.z2, self.log_signal_var)  # the SE part, training side precomputed
+        K = _se_scaled(Xs * terms.inv_ls, terms.Z, terms.half_z2, self.log_signal_var)  # the SE part, training side precomputed
         Kw = K @ terms.weights
         value = Kw + terms.bias
         if terms.linear is not None:
