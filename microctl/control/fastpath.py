@@ -151,17 +151,18 @@ class FastSQP:
         J, gJ, t, gt, H = self._eval(u, s, 0.0)
         if jref is None:
             jref = J if J > 1e-300 else 1.0
+        Au = self.A @ u  # the ranges at u: the step's slack, and the complementarity at the next point
         for it in range(self.max_iter):
             info["iter"] = it + 1
             g, B = gJ / jref, _reduced_convex(H / jref, gt)
-            step = self._qp.solve(B, g, gt, t - target, self.b - self.A @ u)
+            step = self._qp.solve(B, g, gt, t - target, self.b - Au)
             if step is None:
                 info["status"] = "fast: infeasible step"
                 return u, info
             d, lam_new, mu = step
             u, J, gJ, t, gt, H = self._line_search(u, d, s, target, jref, J, t, g, lam_new)
             lam = lam_new
-            kkt = self._kkt(gJ / jref, gt, lam, mu, u)
+            kkt, Au = self._kkt(gJ / jref, gt, lam, mu, u)
             info["kkt"], info["objective"] = kkt, J
             # the step's multipliers certify first-order optimality at the new point (no extra step)
             if kkt <= self.kkt_tol and abs(t - target) <= self.constraint_tol:
@@ -180,18 +181,21 @@ class FastSQP:
         polish = np.abs(d).max() <= 1e-7 * (1.0 + np.abs(u).max())  # a last correction: taken whole
         alpha = 1.0
         for _ in range(12):
-            un = u + alpha * d
+            un = u + d if alpha == 1.0 else u + alpha * d  # 1.0 * d is d: the full step without the product
             Jn, gJn, tn, gtn, Hn = self._eval(un, s, lam * jref)
             if polish or Jn / jref + nu * abs(tn - target) <= merit0 + 1e-4 * alpha * min(slope, 0.0) + noise:
                 return un, Jn, gJn, tn, gtn, Hn
             alpha *= 0.5
         return un, Jn, gJn, tn, gtn, Hn
 
-    def _kkt(self, g: np.ndarray, gt: np.ndarray, lam: float, mu: np.ndarray, u: np.ndarray) -> float:
-        """Stationarity and complementarity residual of the scaled problem at u."""
+    def _kkt(self, g: np.ndarray, gt: np.ndarray, lam: float, mu: np.ndarray, u: np.ndarray
+             ) -> tuple[float, np.ndarray]:
+        """Stationarity and complementarity residual of the scaled problem at u, and ``A u`` (the
+        next step's slack reads it)."""
         stat = g - lam * gt - self.A.T @ mu
-        comp = np.abs(mu * (self.A @ u - self.b))
-        return float(max(np.abs(stat).max(), comp.max(initial=0.0)))
+        Au = self.A @ u
+        comp = np.abs(mu * (Au - self.b))
+        return float(max(np.abs(stat).max(), comp.max(initial=0.0))), Au
 
     def _in_range(self, u: np.ndarray) -> bool:
         q = self.K @ u
@@ -317,18 +321,41 @@ def _reduced_convex(B: np.ndarray, a: np.ndarray) -> np.ndarray:
     B = 0.5 * (B + B.T)
     Z = _null_basis(a)
     R = Z.T @ B @ Z
-    try:
-        np.linalg.cholesky(R)
-        if R.diagonal().min() > 1e-12 * np.abs(R).max():
-            return B  # positive definite on the tangent space: nothing to change
-    except np.linalg.LinAlgError:
-        pass
+    if _clearly_regular(R):
+        return B  # positive definite on the tangent space: nothing to change
     w, V = np.linalg.eigh(R)
     floor = 1e-12 * max(1e-300, float(np.max(np.abs(w))))
     target = np.maximum(np.abs(w), floor)
     if np.all(target == w):
         return B
     return B + Z @ ((V * (target - w)) @ V.T) @ Z.T
+
+
+def _clearly_regular(R: np.ndarray) -> bool:
+    """Whether R has a Cholesky factor (``np.linalg.cholesky`` succeeds) and its diagonal's
+    smallest entry exceeds 1e-12 times its largest |entry|: the reduced Hessian needs no change.
+
+    For the 2 x 2 R of Table I (n_p = 3) the diagonal test is made on Python floats (the same
+    comparisons) and the factor's existence decided by its second pivot ``r11 - r10^2 / r00``
+    where that is positive or negative by far more than LAPACK's round-off (a relative 1e-8);
+    in between, and for any other size or a non-finite entry, ``np.linalg.cholesky`` decides.
+    """
+    if R.shape == (2, 2):
+        (r00, r01), (r10, r11) = R.tolist()
+        if math.isfinite(r00 + r01 + r10 + r11):
+            if not min(r00, r11) > 1e-12 * max(abs(r00), abs(r01), abs(r10), abs(r11)):
+                return False
+            # here r00 > 0 and r11 > 0 (the first pivot is r00 itself)
+            off = max(r01 * r01, r10 * r10) / r00
+            if off < r11 * (1.0 - 1e-8):
+                return True
+            if min(r01 * r01, r10 * r10) / r00 > r11 * (1.0 + 1e-8):
+                return False
+    try:
+        np.linalg.cholesky(R)
+    except np.linalg.LinAlgError:
+        return False
+    return bool(R.diagonal().min() > 1e-12 * np.abs(R).max())
 
 
 def _solve_batch(M: np.ndarray, rhs: np.ndarray, maxima: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:

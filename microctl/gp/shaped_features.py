@@ -172,6 +172,13 @@ class ShapedFeatures:
         whole = len(plan) == 1 and self._groups[0][1] == list(range(p))
         object.__setattr__(self, "_plan", plan)
         object.__setattr__(self, "_whole", (plan[0][0], plan[0][2]) if whole else None)
+        # the columns ordered by shape group (each group a slice of them): one gather and one
+        # scatter per evaluation instead of a gather and a scatter per group
+        order = np.array([j for _, idx in self._groups for j in idx], dtype=int)
+        ends = np.cumsum([len(idx) for _, idx in self._groups]).tolist()
+        object.__setattr__(self, "_order", order)
+        object.__setattr__(self, "_sliced", tuple((kind, slice(end - len(idx), end), params)
+                                                  for (kind, idx, params), end in zip(plan, ends)))
 
     def gates(self, X: np.ndarray) -> np.ndarray | None:
         """c = X g^T at the rows of X, shape (m, p); None without gates."""
@@ -193,9 +200,17 @@ class ShapedFeatures:
         if self._whole is not None:  # Z itself: the array Z[:, [0, ..., p-1]] copies (C-ordered alike)
             kind, params = self._whole
             return _shape_np(kind, Z, params, C) / self._scale
+        # one call per shape, its columns at once (params broadcast), on the columns in group order
+        # (each shape's block a slice; the same elementwise operations on the same values)
+        Zg = Z[:, self._order]
+        Cg = None if C is None else C[:, self._order]
+        grouped = np.empty_like(Zg)
+        for kind, cols, params in self._sliced:
+            grouped[:, cols] = _shape_np(kind, Zg[:, cols], params, None if Cg is None else Cg[:, cols])
+        # scattered back into a C-ordered array like Z (a gather grouped[:, restore] would be
+        # F-ordered, and a product with it, e.g. the trend's in the kernel, sums in another order)
         out = np.empty_like(Z)
-        for kind, idx, params in self._plan:  # one call per shape, its columns at once (params broadcast)
-            out[:, idx] = _shape_np(kind, Z[:, idx], params, None if C is None else C[:, idx])
+        out[:, self._order] = grouped
         return out / self._scale
 
     def _linear_ca(self, x: ca.MX) -> tuple[ca.MX, ca.MX | None]:
