@@ -275,6 +275,12 @@ class ActiveSetQP:
         r_step = np.maximum(np.abs(g).max(), abs(c))
         for W, M0, m_fixed in self._templates:
             k, size = W.shape
+            if not size:  # the equality alone: one system, checked on Python floats
+                step = self._equality_step(M0, B, neg_a, a, neg_g, c, low, float(np.maximum(m_fixed[0], m_step)),
+                                           float(r_step))
+                if step is not None:
+                    return step
+                continue
             M = M0.copy()
             rhs = np.zeros((k, n + 1 + size))
             M[:, :n, :n] = B
@@ -298,6 +304,37 @@ class ActiveSetQP:
                 mu[W[j]] = MU[j]
                 return D[j], float(X[j, n]), mu
         return None
+
+
+    def _equality_step(self, M0: np.ndarray, B: np.ndarray, neg_a: np.ndarray, a: np.ndarray, neg_g: np.ndarray,
+                       c: float, low: np.ndarray, m_max: float, r_max: float
+                       ) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """The first group of :meth:`solve` (no range active) as a KKT point, or None: the same system
+        (``M0`` its (1, m, m) template), solution and tests as :func:`_solve_batch` and the group's
+        feasibility test make for a batch of one, in fewer NumPy calls (``m_max``, ``r_max``: the
+        largest |entry| of the matrix and of the right-hand side)."""
+        n = B.shape[0]
+        M = M0.copy()
+        M[:, :n, :n] = B
+        M[:, :n, n] = neg_a
+        M[:, n, :n] = a
+        rhs = np.empty((1, n + 1))
+        rhs[:, :n] = neg_g
+        rhs[:, n] = -c
+        try:
+            X = np.linalg.solve(M, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            return None
+        r = np.einsum("kij,kj->ki", M, X)
+        r -= rhs
+        res = float(np.abs(r).max())
+        x_max = float(np.abs(X).max())  # not finite exactly when X has a non-finite entry
+        if not (math.isfinite(x_max) and res <= 1e-9 * ((m_max * x_max + r_max) + 1e-300)):
+            return None
+        D = X[:, :n]
+        if not (D @ self._At >= low).all():
+            return None
+        return D[0], float(X[0, n]), np.zeros(self.A.shape[0])
 
 
 def _reduced_convex(B: np.ndarray, a: np.ndarray) -> np.ndarray:

@@ -491,7 +491,12 @@ class Kernel:
         az = np.exp(-0.5 * z2)
         trend = None if self.trend is None else self.trend.values(X)  # X's first k columns, as Xc's
         Zb, ab = side_b
-        E = self.signal_var * az[:, None] * ab[None, :] * np.expm1(Z @ Zb.T)
+        # sf2 a(z) a(z') (exp(z . z') - 1) with the (m, n) temporaries reused in place (the same
+        # products in the same order as sf2 * az[:, None] * ab[None, :] * np.expm1(Z @ Zb.T))
+        G = Z @ Zb.T
+        np.expm1(G, out=G)
+        E = self.signal_var * az[:, None] * ab[None, :]
+        E *= G
         return self._psi_of(az, Xc, trend), E, self._diag_of(Xc, trend)
 
     def se_remainder_side(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
