@@ -218,9 +218,11 @@ class LogVarianceMean:
             return np.zeros((np.asarray(Xa).shape[0], np.asarray(Xb).shape[0]))
         Ja = self._jacobian(Xa)
         va = np.einsum("ij,jk,ik->i", Ja, self.coef_cov, Ja)
-        # the joint covariance of one set of points (Xb is Xa): its rows' Jacobian and variances once
-        Jb, vb = (Ja, va) if Xb is Xa else (self._jacobian(Xb), None)
-        vb = np.einsum("ij,jk,ik->i", Jb, self.coef_cov, Jb) if vb is None else vb
+        if Xb is Xa:  # the joint covariance of one set of points: its Jacobian and variances once
+            Jb, vb = Ja, va
+        else:
+            Jb = self._jacobian(Xb)
+            vb = np.einsum("ij,jk,ik->i", Jb, self.coef_cov, Jb)
         corr = (Ja @ self.coef_cov @ Jb.T) / np.sqrt(np.maximum(np.outer(va, vb), 1e-300))
         return np.sqrt(np.outer(np.log1p(va), np.log1p(vb))) * corr
 
