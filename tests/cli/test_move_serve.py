@@ -496,8 +496,9 @@ def test_learner_update_folds_each_move_into_the_model(trained, tmp_path):
     # leaves the residual R (K + R)^-1 (y - m) at them, whose R^-1/2-norm is below that of y - m (the
     # eigenvalues of R^1/2 (K + R)^-1 R^1/2 lie in (0, 1)); a plain mean of |residuals| need not fall
     # (on the same 40 moves drawn from the covering_still design the plain mean rose while this norm fell)
-    R = np.exp(before.predict(X).g_mean)
-    assert np.sum((y - after.predict(X).f_mean) ** 2 / R) < np.sum((y - before.predict(X).f_mean) ** 2 / R)
+    prior = before.predict(X)
+    R = np.exp(prior.g_mean)
+    assert np.sum((y - after.predict(X).f_mean) ** 2 / R) < np.sum((y - prior.f_mean) ** 2 / R)
     assert len(read_log(log, stage.config.stage)) == 45
 
 
