@@ -483,6 +483,12 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
 # --------------------------------------------------------------------------- summary
 
 
+def _floor_finding(check: dict) -> str:
+    """What a rig-run's floor check found (:meth:`microctl.models.floor_check.FloorCheck.finding`; JSON
+    written before it had the field: f passing through the floor-only readings)."""
+    return check.get("finding") or f"f passes through {len(check['rows'])} floor-only training readings"
+
+
 def _q(a, p):
     return float(np.percentile(a, p)) if len(a) else float("nan")
 
@@ -733,8 +739,8 @@ def _fmt_fail(f: dict) -> str:
                f"{f['mean_parts']['noise_std_um']:.3f}; the same form told the true variances "
                f"{f['mean_parts'].get('noise_std_best_um', math.nan):.3f})")
             + ("" if not f.get("floor_check") else
-               f"; floor not an estimate: f passes through {len(f['floor_check']['rows'])} floor-only training "
-               f"readings (floor std {f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))
+               f"; floor not an estimate: {_floor_finding(f['floor_check'])} (floor std "
+               f"{f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))
 
 
 def print_families(table: list[dict], results: list[dict]) -> None:

@@ -540,9 +540,11 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
     L.append("")
     floor = ((results.get("training") or {}).get("rounds") or [{}])[-1].get("floor_check")
     if floor:  # microctl.models.floor_check, as `microctl train` warns
-        L += [f"**Warning: the final model's noise floor is not an estimate.** Its mean correction passes through "
-              f"{len(floor['rows'])} training reading(s) that its noise model gives only the floor (floor std "
-              f"{floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): {CONSEQUENCE}, "
+        # "finding" is written since the check also flags a floor no reading bounds; older results lack it
+        finding = floor.get("finding") or (f"the mean correction passes through {len(floor['rows'])} training "
+                                           f"reading(s) that the noise model gives only the floor")
+        L += [f"**Warning: the final model's noise floor is not an estimate.** In the final model {finding} (floor "
+              f"std {floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): {CONSEQUENCE}, "
               f"and so can the EAFM's choices and bands. {ADVICE} and run again.", ""]
     L += bars_section(results)
     if results["common_random_numbers"]:

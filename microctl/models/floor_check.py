@@ -21,6 +21,13 @@ variance at the training inputs). A reading the fit treats as independent scatte
 means f passes through it. :func:`interpolated_floor` reports the moves whose predicted noise
 is within a factor :data:`FLOOR_FACTOR` of the floor and whose hat value exceeds
 :data:`HAT_LIMIT`.
+
+The same floor is not an estimate either when *no* training move is floor-only, or when the fit
+left it at the lower box bound of mu0: every reading then carries a selected source's variance
+far above the floor (a hinge that slips with every tilt, moves that all tilt), nothing in the
+data bounds c_0 from below, and the optimiser drives it to the bound. The scatter predicted
+at a move the sources leave quiet (a pure lift) is then c_0 alone, orders of magnitude below the
+gauge's. :func:`interpolated_floor` reports both (``floor_rows == 0``, ``at_bound``).
 """
 
 from __future__ import annotations
@@ -29,7 +36,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR", "CONSEQUENCE", "ADVICE"]
+from microctl.gp.bound import BOUNDS
+
+__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR", "BOUND_MARGIN", "CONSEQUENCE",
+           "ADVICE"]
 
 #: A training move whose reading f follows by more than this share (hat value) is interpolated:
 #: most of the reading is then in f, and the reading hardly informs the floor. (At 1/2, fits with a
@@ -37,6 +47,8 @@ __all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", 
 HAT_LIMIT = 0.8
 #: A move counts as floor-only where the predicted noise variance is within this factor of c_0.
 FLOOR_FACTOR = 2.0
+#: mu0 (log c_0, standardised) within this of its lower box bound counts as at the bound.
+BOUND_MARGIN = 1e-3
 
 
 @dataclass(frozen=True)
@@ -53,23 +65,47 @@ class FloorCheck:
         The fitted floor's standard deviation sqrt(c_0), µm.
     floor_rows : int
         Training rows whose predicted noise is within :data:`FLOOR_FACTOR` of the floor.
+    at_bound : bool
+        The fitted mu0 = log c_0 is at its lower box bound (:data:`microctl.gp.bound.BOUNDS`).
     """
 
     rows: tuple[int, ...]
     hat: tuple[float, ...]
     floor_std_um: float
     floor_rows: int
+    at_bound: bool = False
+
+    @property
+    def unsupported(self) -> bool:
+        """Whether no training move is floor-only or the floor sits at its lower bound (module docstring)."""
+        return self.floor_rows == 0 or self.at_bound
 
     @property
     def degenerate(self) -> bool:
-        """Whether f passes through a reading that only the floor should scatter."""
-        return bool(self.rows)
+        """Whether the floor is not an estimate: f passes through a reading that only the floor
+        should scatter, or no reading bounds it (:attr:`unsupported`)."""
+        return bool(self.rows) or self.unsupported
 
     def describe(self) -> str:
         """One line for ``microctl train``."""
-        return (f"the mean correction passes through {len(self.rows)} of the {self.floor_rows} training reading(s) "
-                f"that the noise model gives only its floor (hat values up to {max(self.hat):.2f}): the floor std "
-                f"{self.floor_std_um:.3g} µm is then not an estimate, and {CONSEQUENCE}. {ADVICE} and train again")
+        return f"{self.finding()}: the floor std {self.floor_std_um:.3g} µm is then not an estimate, and {CONSEQUENCE}. " \
+               f"{ADVICE} and train again"
+
+    def finding(self) -> str:
+        """What was found, without its consequence (the experiment's report words the rest)."""
+        if self.rows:
+            return (f"the mean correction passes through {len(self.rows)} of the {self.floor_rows} training reading(s) "
+                    f"that the noise model gives only its floor (hat values up to {max(self.hat):.2f})")
+        if self.floor_rows == 0:
+            return ("no training reading is floor-only (every one has a selected source's variance above twice the "
+                    "floor)" + (", and the floor sits at its lower bound" if self.at_bound else ""))
+        return (f"the noise floor sits at its lower bound (the {self.floor_rows} floor-only training reading(s) do not "
+                f"bound it from below)")
+
+    def as_info(self) -> dict:
+        """The JSON kept in the model's ``info["floor_check"]`` and in an experiment's results."""
+        return {"rows": list(self.rows), "hat": list(self.hat), "floor_std_um": self.floor_std_um,
+                "floor_rows": self.floor_rows, "at_bound": self.at_bound, "finding": self.finding()}
 
 
 #: What a floor that is not an estimate does, and what to collect then (``describe`` and the
@@ -104,13 +140,14 @@ def interpolated_floor(model, X: np.ndarray) -> FloorCheck | None:
     hat = np.clip(p.f_var / R, 0.0, 1.0)
     floor_only = noise <= FLOOR_FACTOR * floor_var
     rows = np.flatnonzero(floor_only & (hat > HAT_LIMIT))
+    at_bound = float(model.g_mu0) <= BOUNDS["mu0"][0] + BOUND_MARGIN
     return FloorCheck(tuple(int(i) for i in rows), tuple(float(h) for h in hat[rows]),
-                      float(np.sqrt(floor_var)), int(np.sum(floor_only)))
+                      float(np.sqrt(floor_var)), int(np.sum(floor_only)), bool(at_bound))
 
 
 def with_floor_check(model, data):
     """``model`` with a degenerate :func:`interpolated_floor` result kept in its
-    ``info["floor_check"]`` (rows, hat values, floor std), and that result.
+    ``info["floor_check"]`` (:meth:`FloorCheck.as_info`), and that result.
 
     Parameters
     ----------
@@ -127,6 +164,5 @@ def with_floor_check(model, data):
     check = interpolated_floor(model, data.inputs_for(model))
     if check is None or not check.degenerate:
         return model, None
-    model = replace(model, info={**model.info, "floor_check": {"rows": list(check.rows), "hat": list(check.hat),
-                                                               "floor_std_um": check.floor_std_um}})
+    model = replace(model, info={**model.info, "floor_check": check.as_info()})
     return model, check

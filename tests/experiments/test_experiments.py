@@ -408,7 +408,10 @@ def test_a_degenerate_floor_is_warned_recorded_and_reported(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "round 0: warning: the mean correction passes through 2 of the 4 training reading(s)" in err
     res = json.loads((out / "results.json").read_text())
-    assert res["training"]["rounds"][-1]["floor_check"] == {"rows": [3, 7], "hat": [0.97, 0.91], "floor_std_um": 2e-5}
+    assert res["training"]["rounds"][-1]["floor_check"] == {
+        "rows": [3, 7], "hat": [0.97, 0.91], "floor_std_um": 2e-5, "floor_rows": 4, "at_bound": False,
+        "finding": "the mean correction passes through 2 of the 4 training reading(s) that the noise model gives only "
+                   "its floor (hat values up to 0.97)"}
     assert FittedVHGPR.load(out / "model.npz").info["floor_check"]["rows"] == [3, 7]
     assert "noise floor is not an estimate" in (out / "report.md").read_text()
 

@@ -112,3 +112,35 @@ def test_api_train_warns_and_keeps_the_check(monkeypatch, planted_log, table1_pa
     with pytest.warns(RuntimeWarning, match="passes through 1 of the 3"):
         model = api.train(planted_log, api.load_stage(table1_path), restarts=1)
     assert model.info["floor_check"]["rows"] == [5]
+
+
+def test_a_floor_no_reading_bounds_is_flagged():
+    """On a hinge that slips with every tilt (``hinge_slip`` rig 1307, 125 covering moves, the default
+    selection: ``drx:sq`` and ``dry:sq``) every training move tilts the platform, so no reading is
+    floor-only; the fit drives c_0 to mu0's lower bound, and the floor std is far below the rig's gauge
+    noise (the scatter the model then predicts at a pure lift). Found by the rig bench (seed 1300):
+    a predicted noise of 0.004 µm at a pure lift where the rig scatters by 0.057 µm. No reading is
+    interpolated here, so the hat test alone passed this floor."""
+    rig, model, X, y = _trained("hinge_slip", 1307, 125)
+    assert sorted(model.info["noise_selection"]["selected"]) == ["drx:sq", "dry:sq"]
+    check = interpolated_floor(model, X)
+    gauge = rig.config.backend.simulated.gauge_noise_std_um
+    assert check.rows == () and check.floor_rows == 0 and check.at_bound, check
+    assert check.unsupported and check.degenerate and check.floor_std_um < 0.01 * gauge, check
+    assert "no training reading is floor-only" in check.describe() and "not an estimate" in check.describe()
+
+
+def test_what_the_check_reports():
+    """:class:`FloorCheck`'s verdict and wording for each finding (hand-made checks)."""
+    sound = FloorCheck((), (), 0.05, 40)
+    assert not sound.degenerate and not sound.unsupported
+    interpolated = FloorCheck((3, 7), (0.97, 0.91), 1e-5, 4)
+    assert interpolated.degenerate and not interpolated.unsupported
+    assert interpolated.finding().startswith("the mean correction passes through 2 of the 4")
+    none_floor_only = FloorCheck((), (), 1e-5, 0)
+    assert none_floor_only.degenerate and none_floor_only.finding().startswith("no training reading is floor-only")
+    bounded = FloorCheck((), (), 1e-5, 3, at_bound=True)
+    assert bounded.degenerate and "sits at its lower bound (the 3 floor-only" in bounded.finding()
+    info = bounded.as_info()
+    assert info == {"rows": [], "hat": [], "floor_std_um": 1e-5, "floor_rows": 3, "at_bound": True,
+                    "finding": bounded.finding()}
