@@ -27,7 +27,7 @@ Methods (columns):
 
 - ``paper``: the first release as shipped: space-filling design, the paper's noise model
   (``hgp``: g ~ GP(mu0, K_g)), SE kernel only, r_e = noise_mean;
-- ``hgp``: today's pipeline with the paper's noise model (covering design, linear trend,
+- ``hgp``: today's pipeline with the paper's noise model (the default design, linear trend,
   r_e = noise_quantile), to show what the noise model alone changes;
 - ``physical``: the previous release's noise model (every actuator's stick-slip);
 - ``default``: today's defaults (the noise dictionary, selected by the data; f's variance in
@@ -41,8 +41,9 @@ Methods (columns):
 - ``params``: the default with the noise parameters' uncertainty in the objective;
 - ``g_on``: the default with g's GP always kept beside the selected sources (``g_gp: on``; the
   default keeps it only where the bound pays for it, microctl.models.g_gp_selection);
-- ``still``: the default trained on ``covering_still`` (every 20th move the previous command
-  again, which reads the noise floor; microctl.measurement.design);
+- ``covering``: the default trained on the previous default design, ``covering``: the default
+  design ``covering_still`` without its still moves (every 20th move the previous command again,
+  which reads the noise floor; microctl.measurement.design);
 - ``refined``: the default, trained on as many moves of which 40 % are refinement moves (rounds of
   40 after the designed ones, each chosen where the model is least sure of the optimum, then
   training again: ``microctl learn``, microctl.api.learn, microctl.control.refine);
@@ -103,7 +104,7 @@ from microctl.control.controller import (  # noqa: E402
 from microctl.control.context import ByDirection  # noqa: E402
 from microctl.control.oracle import OracleController  # noqa: E402
 from microctl import api  # noqa: E402
-from microctl.measurement.design import training_moves  # noqa: E402
+from microctl.measurement.design import DEFAULT_DESIGN, training_moves  # noqa: E402
 from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
 from microctl.models import direction  # noqa: E402
@@ -159,48 +160,48 @@ class Method:
 METHODS = {
     "paper": Method("paper", "space_filling", ResidualModelSettings(noise_model="hgp", linear_trend=False),
                     ControllerSettings(r_e="noise_mean")),
-    "hgp": Method("hgp", "covering", ResidualModelSettings(noise_model="hgp"), ControllerSettings()),
+    "hgp": Method("hgp", DEFAULT_DESIGN, ResidualModelSettings(noise_model="hgp"), ControllerSettings()),
     # the previous release's default (issue 10): g's prior mean is every actuator's stick-slip
-    "physical": Method("physical", "covering", ResidualModelSettings(noise_model="physical"), ControllerSettings()),
-    "default": Method("default", "covering", ResidualModelSettings(), ControllerSettings()),
+    "physical": Method("physical", DEFAULT_DESIGN, ResidualModelSettings(noise_model="physical"), ControllerSettings()),
+    "default": Method("default", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings()),
     # the default, with the same number of training moves of which 40 % are refinement moves
     # (microctl learn, microctl.api.learn): collect, train, then rounds of 40 moves chosen by
     # the model (microctl.control.refine), each followed by training again
-    "refined": Method("refined", "covering", ResidualModelSettings(), ControllerSettings(), refine=True),
-    # the default trained on the covering design with every 20th move a still move (the previous
-    # command again: microctl.measurement.design, covering_still), which reads the noise floor
-    "still": Method("still", "covering_still", ResidualModelSettings(), ControllerSettings()),
+    "refined": Method("refined", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings(), refine=True),
+    # the default trained on the previous default design, covering without its still moves
+    # (microctl.measurement.design: every 20th move of covering_still repeats the previous command)
+    "covering": Method("covering", "covering", ResidualModelSettings(), ControllerSettings()),
     # a reference, not a method: the default told the dictionary quantities that carry the rig's true
     # scatter (FamilyRig.true_sources; the stick-slip actuators on the default rigs) instead of
     # selecting them (microctl.models.declared_sources); what the selection misses is the difference
-    "told": Method("told", "covering", ResidualModelSettings(noise_sources=()), ControllerSettings()),
+    "told": Method("told", DEFAULT_DESIGN, ResidualModelSettings(noise_sources=()), ControllerSettings()),
     # the default without the least-motion rule (microctl.control.credible): eq. 4's optimum always,
     # the default before issue 18's least-motion change
-    "eq4": Method("eq4", "covering", ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),
+    "eq4": Method("eq4", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings(prefer_least_motion=False)),
     # the default with the previous release's least-motion rule: the optimum also had to be better
     # with posterior probability >= credible_level (microctl.control.credible)
-    "credible": Method("credible", "covering", ResidualModelSettings(), ControllerSettings(least_motion_credible=True)),
+    "credible": Method("credible", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings(least_motion_credible=True)),
     # the default with the unselected noise sources' model-averaged variance in eq. 4's objective
     # (microctl.models.alternatives)
-    "weighed": Method("weighed", "covering", ResidualModelSettings(), ControllerSettings(weigh_alternatives=True)),
+    "weighed": Method("weighed", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings(weigh_alternatives=True)),
     # the default without the mean correction's posterior variance in the objective (the
     # previous release's objective; the default adds it since issue 18)
-    "noise_only": Method("noise_only", "covering", ResidualModelSettings(), ControllerSettings(epistemic=False)),
+    "noise_only": Method("noise_only", DEFAULT_DESIGN, ResidualModelSettings(), ControllerSettings(epistemic=False)),
     # the default with the noise parameters' uncertainty propagated into the objective
-    "params": Method("params", "covering", ResidualModelSettings(noise_parameter_uncertainty=True),
+    "params": Method("params", DEFAULT_DESIGN, ResidualModelSettings(noise_parameter_uncertainty=True),
                      ControllerSettings()),
     # the default with g's GP always kept beside the selected sources (g_gp: on, the default until
     # g_gp: auto was measured; microctl.models.g_gp_selection)
-    "g_on": Method("g_on", "covering", ResidualModelSettings(g_gp="on"), ControllerSettings()),
+    "g_on": Method("g_on", DEFAULT_DESIGN, ResidualModelSettings(g_gp="on"), ControllerSettings()),
     # the default with g's GP on the actuators' positions and steps (microctl.models.noise_inputs)
-    "g_actuators": Method("g_actuators", "covering", ResidualModelSettings(g_inputs="actuators"),
+    "g_actuators": Method("g_actuators", DEFAULT_DESIGN, ResidualModelSettings(g_inputs="actuators"),
                           ControllerSettings()),
     # ... and g's fit started also from the log squared residuals (microctl.gp.noise_start)
-    "g_act_res": Method("g_act_res", "covering", ResidualModelSettings(g_inputs="actuators", g_start="residuals"),
+    "g_act_res": Method("g_act_res", DEFAULT_DESIGN, ResidualModelSettings(g_inputs="actuators", g_start="residuals"),
                         ControllerSettings()),
     # the paper's constant prior mean, g's GP on the actuators and started from the residuals:
     # how much of the repeatability g's GP learns without the dictionary
-    "hgp_act_res": Method("hgp_act_res", "covering",
+    "hgp_act_res": Method("hgp_act_res", DEFAULT_DESIGN,
                           ResidualModelSettings(noise_model="hgp", g_inputs="actuators", g_start="residuals"),
                           ControllerSettings()),
 }

@@ -12,6 +12,7 @@ import numpy as np
 
 from microctl.control.controller import ControllerSettings
 from microctl.errors import ConfigError
+from microctl.measurement.design import DEFAULT_DESIGN
 from microctl.measurement.log import MeasurementLog, read_log
 from microctl.models.afm import T_PLAUSIBLE_FACTOR, AnalyticForwardModel, plausible_t_bound_um
 from microctl.models.eafm import EAFM
@@ -143,7 +144,7 @@ def _on_backend(stage: Stage, backend: Any | None, run: Any) -> Any:
         return run(b)
 
 
-def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str = "covering",
+def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str = DEFAULT_DESIGN,
             backend: Any | None = None) -> int:
     """Run ``n`` designed training moves on the stage's backend and write them as a measurement log (``microctl collect``).
 
@@ -157,7 +158,8 @@ def collect(stage: Stage, n: int, out: str | Path, *, seed: int = 0, design: str
     seed : int
         Seed of the move design.
     design : str
-        ``covering`` (default) or ``space_filling`` (:mod:`microctl.measurement.design`).
+        One of :data:`~microctl.measurement.design.DESIGNS`, default ``covering_still``
+        (:data:`~microctl.measurement.design.DEFAULT_DESIGN`; ``space_filling`` is the paper's).
     backend : StageBackend, optional
         Default: :meth:`Stage.open_backend` (opened and closed here).
 
@@ -236,7 +238,7 @@ def train(log: str | Path | MeasurementLog, stage: Stage, *, out: str | Path | N
 
 
 def learn(stage: Stage, n: int, log: str | Path, *, out: str | Path | None = None, seed: int = 0,
-          design: str = "covering", target_range_um: tuple[float, float] | None = None, settings: Any | None = None,
+          design: str = DEFAULT_DESIGN, target_range_um: tuple[float, float] | None = None, settings: Any | None = None,
           controller: ControllerSettings | None = None, backend: Any | None = None, replace_log: bool = False,
           quiet: bool = True, say: Any | None = None):
     """Learn a stage in ``n`` moves (``microctl learn``): the design, then rounds of :func:`refine`

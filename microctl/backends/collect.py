@@ -1,6 +1,6 @@
 """Execute training moves on a backend and write them as a measurement log.
 
-The moves come from a training design (:mod:`microctl.measurement.design`: ``covering`` by default,
+The moves come from a training design (:mod:`microctl.measurement.design`: ``covering_still`` by default,
 ``space_filling`` for the paper's IV-A design), or one at a time from a trained model
 (:mod:`microctl.control.refine`); :func:`run_collect` executes them one by one, logging each
 completed move at once, so that a failure keeps every completed move.

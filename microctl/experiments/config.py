@@ -78,7 +78,7 @@ class Training:
     moves : int
         Moves of the initial design (the paper: 125).
     design : str
-        One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering``).
+        One of :data:`~microctl.measurement.design.DESIGNS` (default ``covering_still``).
     episode_moves : int
         Moves per episode of the ``face_episodes`` design (after its return to the zero state).
     noise_model, linear_trend, se, mean_shift, g_inputs, g_start, g_gp, restarts, max_iter, noise_sources

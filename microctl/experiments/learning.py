@@ -20,7 +20,7 @@ from microctl.backends.collect import run_collect
 from microctl.control.controller import ControllerSettings
 from microctl.control.refine import ROUND_MOVES, check_target_range, learning_rounds, refinement_commands
 from microctl.errors import ConfigError
-from microctl.measurement.design import training_moves
+from microctl.measurement.design import DEFAULT_DESIGN, training_moves
 from microctl.measurement.log import read_log
 from microctl.models.afm import AnalyticForwardModel
 from microctl.models.eafm import EAFM
@@ -33,7 +33,7 @@ __all__ = ["learn_stage"]
 
 def learn_stage(afm: AnalyticForwardModel, stage: Any, backend: Any, n: int, log: str | Path,
                 target_range_um: tuple[float, float] | None = None, *, out: str | Path | None = None, seed: int = 0,
-                design: str = "covering", settings: ResidualModelSettings | None = None,
+                design: str = DEFAULT_DESIGN, settings: ResidualModelSettings | None = None,
                 controller: ControllerSettings | None = None, replace_log: bool = False, quiet: bool = True,
                 say: Callable[[str], None] | None = None):
     """Run the ``n`` moves on ``backend`` and fit the residual model in rounds (module docstring).

@@ -25,8 +25,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "collect",
         help="designed training moves on the configured backend, written as a measurement log",
         description="Run n training moves on the backend the stage config names, writing one log row per "
-        "move. The default 'covering' design mixes space-filling poses, moves holding one or two actuators "
-        "still and poses with actuators at their range limits (faces and edges of the workspace); "
+        "move. The default 'covering_still' design mixes space-filling poses, moves holding one or two "
+        "actuators still and poses with actuators at their range limits (faces and edges of the workspace), "
+        "and every 20th move sends the previous command again (it reads the noise floor; 'covering' is the "
+        "same without them); "
         "'space_filling' is the paper's design (scrambled Sobol points in a state-spreading order). "
         "With --refine MODEL.npz the moves are chosen by that trained model instead: episodes from the zero "
         "state to random targets, each move the candidate optimal pose whose noise the model is least sure "
