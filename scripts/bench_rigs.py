@@ -109,7 +109,7 @@ from microctl.measurement.log import read_log  # noqa: E402
 from microctl.models.afm import AnalyticForwardModel  # noqa: E402
 from microctl.models import direction  # noqa: E402
 from microctl.models.eafm import EAFM  # noqa: E402
-from microctl.models.floor_check import with_floor_check  # noqa: E402
+from microctl.models.floor_check import finding_of, with_floor_check  # noqa: E402
 from microctl.models.training import (  # noqa: E402
     SELECTION_ALPHA,
     ResidualModelSettings,
@@ -484,12 +484,6 @@ def run_family_rig(family: str, seed: int, sizes: tuple[int, ...], methods: tupl
 # --------------------------------------------------------------------------- summary
 
 
-def _floor_finding(check: dict) -> str:
-    """What a rig-run's floor check found (:meth:`microctl.models.floor_check.FloorCheck.finding`; JSON
-    written before it had the field: f passing through the floor-only readings)."""
-    return check.get("finding") or f"f passes through {len(check['rows'])} floor-only training readings"
-
-
 def _q(a, p):
     return float(np.percentile(a, p)) if len(a) else float("nan")
 
@@ -740,7 +734,7 @@ def _fmt_fail(f: dict) -> str:
                f"{f['mean_parts']['noise_std_um']:.3f}; the same form told the true variances "
                f"{f['mean_parts'].get('noise_std_best_um', math.nan):.3f})")
             + ("" if not f.get("floor_check") else
-               f"; floor not an estimate: {_floor_finding(f['floor_check'])} (floor std "
+               f"; floor not an estimate: {finding_of(f['floor_check'])} (floor std "
                f"{f['floor_check']['floor_std_um']:.2g} µm, microctl.models.floor_check)"))
 
 

@@ -54,7 +54,8 @@ def test_a_failing_target_names_a_floor_the_mean_passes_through():
         {"n": 200, "method": "default", "targets": [t], "floor_check": None}]}]
     lines = [bench._fmt_fail(f) for f in bench.failing_targets(results)]
     assert len(lines) == 2 and all(": mean;" in ln for ln in lines)
-    assert "floor not an estimate: f passes through 2 floor-only training readings (floor std 5.7e-05 µm" in lines[0]
+    assert ("floor not an estimate: the mean correction passes through 2 training reading(s) that the noise model gives "
+            "only its floor (floor std 5.7e-05 µm") in lines[0]
     assert "floor not an estimate" not in lines[1]
 
 

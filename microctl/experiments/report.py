@@ -31,7 +31,7 @@ from microctl.control.controller import returned_least_motion
 from microctl.control.noise_summaries import R_E_SUMMARIES
 from microctl.experiments.bars import evaluate_bars, incremental_ratios, within_2se
 from microctl.experiments.config import ExperimentConfig
-from microctl.models.floor_check import ADVICE, CONSEQUENCE
+from microctl.models.floor_check import ADVICE, CONSEQUENCE, finding_of
 from microctl.util import stats
 from microctl.util.atomic import write_text_atomic
 from microctl.util.io import to_jsonable, write_json
@@ -540,9 +540,7 @@ def report_markdown(cfg: ExperimentConfig, results: dict) -> str:
     L.append("")
     floor = ((results.get("training") or {}).get("rounds") or [{}])[-1].get("floor_check")
     if floor:  # microctl.models.floor_check, as `microctl train` warns
-        # "finding" is written since the check also flags a floor no reading bounds; older results lack it
-        finding = floor.get("finding") or (f"the mean correction passes through {len(floor['rows'])} training "
-                                           f"reading(s) that the noise model gives only the floor")
+        finding = finding_of(floor)
         L += [f"**Warning: the final model's noise floor is not an estimate.** In the final model {finding} (floor "
               f"std {floor['floor_std_um']:.3g} µm; results.json, training.rounds[-1].floor_check): {CONSEQUENCE}, "
               f"and so can the EAFM's choices and bands. {ADVICE} and run again.", ""]

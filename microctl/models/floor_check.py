@@ -38,8 +38,8 @@ import numpy as np
 
 from microctl.gp.bound import BOUNDS
 
-__all__ = ["FloorCheck", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR", "BOUND_MARGIN", "CONSEQUENCE",
-           "ADVICE"]
+__all__ = ["FloorCheck", "finding_of", "interpolated_floor", "with_floor_check", "HAT_LIMIT", "FLOOR_FACTOR",
+           "BOUND_MARGIN", "CONSEQUENCE", "ADVICE"]
 
 #: A training move whose reading f follows by more than this share (hat value) is interpolated:
 #: most of the reading is then in f, and the reading hardly informs the floor. (At 1/2, fits with a
@@ -106,6 +106,16 @@ class FloorCheck:
         """The JSON kept in the model's ``info["floor_check"]`` and in an experiment's results."""
         return {"rows": list(self.rows), "hat": list(self.hat), "floor_std_um": self.floor_std_um,
                 "floor_rows": self.floor_rows, "at_bound": self.at_bound, "finding": self.finding()}
+
+
+def finding_of(info: dict) -> str:
+    """The finding of a floor check kept as JSON (:meth:`FloorCheck.as_info`), also one written
+    before ``as_info`` kept its ``finding`` (then the check flagged only readings that the mean
+    correction passes through, and its ``rows`` are those readings)."""
+    if info.get("finding"):
+        return str(info["finding"])
+    return (f"the mean correction passes through {len(info['rows'])} training reading(s) that the noise model "
+            f"gives only its floor")
 
 
 #: What a floor that is not an estimate does, and what to collect then (``describe`` and the

@@ -25,7 +25,7 @@ from microctl.backends.collect import run_collect
 from microctl.measurement.design import training_moves
 from microctl.measurement.log import read_log
 from microctl.models.afm import AnalyticForwardModel
-from microctl.models.floor_check import HAT_LIMIT, FloorCheck, interpolated_floor
+from microctl.models.floor_check import HAT_LIMIT, FloorCheck, finding_of, interpolated_floor
 from microctl.models.training import ResidualModelSettings, residual_dataset, train_residual_model
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -144,3 +144,14 @@ def test_what_the_check_reports():
     info = bounded.as_info()
     assert info == {"rows": [], "hat": [], "floor_std_um": 1e-5, "floor_rows": 3, "at_bound": True,
                     "finding": bounded.finding()}
+
+
+def test_finding_of_kept_json_reads_old_and_new_checks():
+    """:func:`finding_of` gives a kept check's own finding, and for JSON written before
+    ``as_info`` kept one (only ``rows``: readings the mean correction passes through) the same
+    kind of sentence, so the report and the rig bench word an old results file alike."""
+    for check in (FloorCheck((3, 7), (0.97, 0.91), 1e-5, 4), FloorCheck((), (), 1e-5, 0, at_bound=True)):
+        assert finding_of(check.as_info()) == check.finding()
+    old = {"rows": [16, 67], "hat": [1.0, 1.0], "floor_std_um": 5.7e-5}
+    assert finding_of(old) == ("the mean correction passes through 2 training reading(s) that the noise model "
+                               "gives only its floor")
