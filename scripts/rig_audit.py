@@ -46,6 +46,16 @@ the model's R, ``w* = 1/n + (I - 1 1^T / n) (K_f + V)^-1 k_f(X, x*)`` (``f_weigh
 weighs the readings as the truth would (for the trend, generalised least squares with the true
 weights: the best linear unbiased estimate): ``sqrt(sum_i w*_i^2 v_i)`` against the model's own
 noise-part std says how much.
+
+Could the noise model's sources have described the truth's scatter at all? ``dictionary_fit``
+fits the truth's variances v_i at the training moves by a floor plus non-negative multiples of
+the candidate sources (non-negative least squares on v_fit / v - 1, so every move counts by its
+relative error, as in a likelihood), once with every candidate of the dictionary and once with
+the selected ones. A small relative error with every candidate and a large one with the selected
+ones says the dictionary holds the shape and the selection missed it (from these draws: the
+readings scatter about v); a large error with every candidate says the dictionary lacks the
+shape. The fit is to noise-free variances, and with many candidates and few moves it can
+describe more than a selection of a few sources could: it bounds what the dictionary offers.
 """
 
 from __future__ import annotations
@@ -55,7 +65,7 @@ import math
 import numpy as np
 from scipy import stats
 
-__all__ = ["training_evidence", "entry_evidence", "replay_truth", "f_weights", "mean_error_parts"]
+__all__ = ["training_evidence", "entry_evidence", "replay_truth", "f_weights", "mean_error_parts", "dictionary_fit"]
 
 
 def entry_evidence(alpha: float, candidates: int) -> float:
@@ -171,3 +181,37 @@ def mean_error_parts(w: np.ndarray, y: np.ndarray, y_true: np.ndarray, var_true:
     w, y, y_true, v = (np.asarray(a, dtype=float) for a in (w, y, y_true, var_true))
     return {"bias_um": float(w @ y_true - y_true_star), "noise_um": float(w @ (y - y_true)),
             "noise_std_um": float(math.sqrt(float(np.sum(w * w * v))))}
+
+
+def dictionary_fit(var_true: np.ndarray, candidates: np.ndarray, selected) -> dict:
+    """How closely a floor and non-negative multiples of the candidate sources describe the truth's
+    variances at the training moves (module docstring): with every candidate, and with the
+    selected ones.
+
+    Parameters
+    ----------
+    var_true : ndarray, shape (n,)
+        The readings' true variances (µm², > 0).
+    candidates : ndarray, shape (n, P)
+        Every candidate source at the training moves (non-negative).
+    selected : sequence of int
+        Columns of ``candidates`` the noise selection chose (may be empty: the floor alone).
+
+    Returns
+    -------
+    dict
+        ``all_rel_rms`` and ``selected_rel_rms``: the root mean square of ``v_fit / v - 1`` over
+        the moves for each fit.
+    """
+    from scipy.optimize import nnls
+
+    v = np.asarray(var_true, dtype=float)
+    Phi = np.asarray(candidates, dtype=float).reshape(len(v), -1)
+
+    def rel_rms(cols) -> float:
+        A = np.column_stack([np.ones(len(v)), Phi[:, list(cols)]]) / v[:, None]
+        scale = np.maximum(np.max(np.abs(A), axis=0), 1e-300)  # columns of unit size: nnls's conditioning
+        c, _ = nnls(A / scale, np.ones(len(v)), maxiter=50 * A.shape[1])
+        return float(np.sqrt(np.mean(((A / scale) @ c - 1.0) ** 2)))
+
+    return {"all_rel_rms": rel_rms(range(Phi.shape[1])), "selected_rel_rms": rel_rms(selected)}

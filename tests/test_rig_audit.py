@@ -185,3 +185,21 @@ def test_weights_told_the_models_own_variances_are_its_weights_and_the_true_ones
         np.testing.assert_allclose(w_own, w, atol=1e-8)
         w_best = audit.f_weights(model, y, x_star, noise_var=v)
         assert np.sum(w_best ** 2 * v) <= 1.01 * np.sum(w ** 2 * v)
+
+
+def test_dictionary_fit_recovers_a_planted_combination_and_the_floor_alone_has_its_closed_form():
+    """A truth whose variance is a floor plus two of six candidate columns is described exactly by
+    every candidate and by those two; by the floor alone the relative error is the closed form of a
+    least-squares constant c on c / v - 1 (c = sum 1/v / sum 1/v^2), worked out here."""
+    rng = np.random.default_rng(5)
+    Phi = rng.uniform(0.0, 1.0, (150, 6)) ** 2
+    v = 0.004 + 0.03 * Phi[:, 1] + 0.01 * Phi[:, 4]
+    fit = _audit().dictionary_fit(v, Phi, [1, 4])
+    assert fit["all_rel_rms"] < 1e-8 and fit["selected_rel_rms"] < 1e-8
+    c = np.sum(1 / v) / np.sum(1 / v**2)
+    floor_only = _audit().dictionary_fit(v, Phi, [])["selected_rel_rms"]
+    assert floor_only == pytest.approx(math.sqrt(np.mean((c / v - 1) ** 2)), rel=1e-6)
+    assert floor_only > 0.3  # the planted sources make the variance vary several-fold
+    # a wrong pair leaves a clear error; the fit is never worse with more columns
+    wrong = _audit().dictionary_fit(v, Phi, [0, 2])["selected_rel_rms"]
+    assert wrong > 0.1 and wrong <= floor_only + 1e-12
