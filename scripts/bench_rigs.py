@@ -686,7 +686,9 @@ def data_bar_summary(runs: list[dict]) -> dict:
 
 def _dictionary_fit(afm: AnalyticForwardModel, data, model, var_true: np.ndarray) -> dict:
     """:func:`rig_audit.dictionary_fit` of the truth's variances at the training moves by the
-    stage's candidate sources (as training evaluates them: on x and the move's context)."""
+    stage's candidate sources (as training evaluates them: on x and the move's context). A
+    selected tilt (its direction fitted, not a candidate) is left out of the selected ones' fit,
+    which then overstates their error."""
     Xc = data.context_inputs(afm.n_q)
     cands = candidate_features(afm, context=True).rescaled(Xc)
     chosen = (model.info.get("noise_selection") or {}).get("selected") or []
