@@ -56,6 +56,9 @@ ones says the dictionary holds the shape and the selection missed it (from these
 readings scatter about v); a large error with every candidate says the dictionary lacks the
 shape. The fit is to noise-free variances, and with many candidates and few moves it can
 describe more than a selection of a few sources could: it bounds what the dictionary offers.
+Neither reading is by itself a failure's cause (a controller needs the scatter ranked at the
+poses it compares, not described at every training move): ``scripts/bench_rigs.py`` counts the
+same class over the passing rigs as its base rate.
 """
 
 from __future__ import annotations
